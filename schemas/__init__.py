@@ -1,0 +1,1 @@
+"""Pydantic models for configuration and messages; JSON Schemas are generated from them."""

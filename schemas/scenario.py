@@ -1,0 +1,273 @@
+"""Scenario and controller configuration models (pydantic v2).
+
+A scenario keeps the *true* plant (``plant``) apart from the controller's own, possibly wrong,
+model of it (``model``). Every numeric field carries its unit in its name (``_V``, ``_A``, ``_W``,
+``_s``, ``_hz``, ``_per_s``...). Unknown keys are rejected, so a typo names the field.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CircuitParams(Strict):
+    """Series R-L source branch and shunt C at the terminal (paper Eqn RLCEqn)."""
+
+    R_ohm: NonNeg = 0.01
+    L_H: Pos = 1.12e-3
+    C_F: Pos = 6.8e-3
+
+
+class InitialState(Strict):
+    i_A: Finite = 1.0
+    v_V: Pos = 80.0
+    u_V: Finite | None = Field(default=None, description="source voltage; default: v_V + R i")
+
+
+class SourceLimits(Strict):
+    """Physical limits of the controllable voltage source (the actuator)."""
+
+    u_min_V: Finite = 0.0
+    u_max_V: Finite = 200.0
+
+    @model_validator(mode="after")
+    def _order(self) -> SourceLimits:
+        if not self.u_min_V < self.u_max_V:
+            raise ValueError("u_min_V must be < u_max_V")
+        return self
+
+
+class PlantConfig(CircuitParams):
+    initial: InitialState = InitialState()
+    source: SourceLimits = SourceLimits()
+    v_cpl_min_V: Pos = Field(
+        default=5.0, description="below this terminal voltage the CPL behaves as a constant resistance"
+    )
+
+
+class SineComponent(Strict):
+    amplitude: Finite
+    freq_hz: NonNeg
+    phase_rad: Finite = 0.0
+
+
+class ProfileConfig(Strict):
+    """A scalar time profile (W for loads, V for a matched disturbance).
+
+    kind: ``constant`` (value), ``steps`` (value, then ``steps = [[t_s, value], ...]``),
+    ``sines`` (value + sum of ``components``), ``csv`` (piecewise-linear, columns t_s,value).
+    """
+
+    kind: Literal["constant", "steps", "sines", "csv"] = "constant"
+    value: Finite = 0.0
+    steps: list[tuple[NonNeg, Finite]] = []
+    components: list[SineComponent] = []
+    csv_path: str | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ProfileConfig:
+        if self.kind == "csv" and not self.csv_path:
+            raise ValueError("kind 'csv' needs csv_path")
+        if self.kind == "steps":
+            ts = [t for t, _ in self.steps]
+            if ts != sorted(ts):
+                raise ValueError("steps must be sorted by time")
+        return self
+
+
+class LoadConfig(ProfileConfig):
+    """The neighbour Sigma_2: a constant-power load absorbing P_l(t) (W)."""
+
+    value: Finite = 1200.0
+
+
+class SensorConfig(Strict):
+    """Measurement chain: seeded white noise (standard deviation) and quantisation (LSB)."""
+
+    noise_v_V: NonNeg = 0.0
+    noise_i_A: NonNeg = 0.0
+    lsb_v_V: NonNeg = 0.0
+    lsb_i_A: NonNeg = 0.0
+
+
+class TimingConfig(Strict):
+    control_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = 10_000.0
+    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = 1e-5
+    delay_samples: Annotated[int, Field(ge=0, le=50)] = 0
+    duration_s: Annotated[float, Field(gt=0, le=3600)] = 0.2
+
+
+class LimitsConfig(Strict):
+    """Actuator limits the controller enforces on its own command."""
+
+    u_min_V: Finite = 0.0
+    u_max_V: Finite = 200.0
+    du_dt_max_V_per_s: Pos = 2.0e5
+    i_floor_A: Pos = Field(default=0.5, description="current floor where a law divides by i")
+
+    @model_validator(mode="after")
+    def _order(self) -> LimitsConfig:
+        if not self.u_min_V < self.u_max_V:
+            raise ValueError("u_min_V must be < u_max_V")
+        return self
+
+
+ControllerKind = Literal["fblc", "smc", "lqr", "bm", "fixed"]
+
+
+class ControllerConfig(Strict):
+    """Controller selection, gains and limits.
+
+    kind: ``fblc`` energy feedback linearisation (paper Eqn FBLC), ``smc`` energy sliding mode
+    (Eqn SMC), ``lqr`` proportional baseline in deviation form (Eqn CtrlCG), ``bm`` Brayton-Moser
+    baseline (Eqn BMCtrl), ``fixed`` a source held at its initial voltage (du/dt = 0).
+    mapping: ``exact`` chooses the constant du/dt of the next period so that the nominal model lands
+    y_z on the law's target at the period's end (discrete-time form of Eqn ControlImp);
+    ``continuous`` evaluates Eqn ControlImp as printed, du/dt = (u di/dt - u_z)/i.
+    """
+
+    kind: ControllerKind = "fblc"
+    v_ref_V: Pos = 80.0
+    K_per_s: Pos = Field(default=2000.0, description="energy-space gain K (1/s)")
+    mapping: Literal["exact", "continuous"] = "exact"
+    cancel_tangent_energy: bool = Field(
+        default=True,
+        description="True: u_z cancels eta - 4E_t so e decays at exactly K; False: paper's general form "
+        "u_z = -eta - K e + dy_ref/dt, which leaves -4E_t in the closed loop",
+    )
+    smc_bound_W_per_s: NonNeg = Field(default=2.0e5, description="L-bar, bound on the uncancelled term")
+    smc_boundary_W: NonNeg = Field(default=0.0, description="boundary layer width phi; 0 = pure sign")
+    lqr_K1_ohm: Finite = 0.4512
+    lqr_K2: Finite = 0.45
+    bm_K1: Finite = 0.3756
+    bm_K2_s: Finite = 1.8e-3
+    bm_K3_S: Finite = 1.0
+    bm_Pi_W: NonNeg = 2400.0
+    delay_compensation_samples: Annotated[int, Field(ge=0, le=50)] | None = Field(
+        default=None, description="samples of loop delay to predict over; None = the known loop delay"
+    )
+    deriv_tau_s: Pos = Field(default=5e-4, description="estimator derivative window time constant")
+    limits: LimitsConfig = LimitsConfig()
+
+
+class FeasibilityConfig(Strict):
+    """Per-window interaction ranges (paper Eqn IncomingIntRange)."""
+
+    window_s: Pos = 1.0
+    forecast_margin: NonNeg = Field(default=0.0, description="relative widening of the load forecast")
+    literal_paper_range: bool = Field(
+        default=False,
+        description="True: Qdot range offset (2/tau')[P_min, P_max] as printed; False: (2/tau')[-P_max, P_max]",
+    )
+
+
+class Scenario(Strict):
+    name: str = "scenario"
+    description: str = ""
+    seed: int = 1
+    plant: PlantConfig = PlantConfig()
+    model: CircuitParams = CircuitParams()
+    load: LoadConfig = LoadConfig()
+    disturbance: ProfileConfig | None = Field(default=None, description="matched disturbance voltage (V)")
+    sensor: SensorConfig = SensorConfig()
+    timing: TimingConfig = TimingConfig()
+    controller: ControllerConfig = ControllerConfig()
+    feasibility: FeasibilityConfig = FeasibilityConfig()
+    base_dir: str = Field(default=".", description="directory for relative csv paths (set by the loader)")
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not v.strip():
+            raise ValueError("name must not be empty")
+        return v
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be used; the message names every offending field."""
+
+
+def format_validation_error(err: ValidationError, source: str = "") -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"])
+        got = e.get("input")
+        shown = "" if isinstance(got, dict) or got is None else f" (got {got!r})"
+        lines.append(f"  {loc or '<root>'}: {e['msg']}{shown}")
+    head = f"invalid scenario {source}".rstrip() + f" ({len(lines)} error{'s' if len(lines) > 1 else ''}):"
+    return "\n".join([head, *lines])
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``a.b.c=value`` -> (["a","b","c"], value) with value parsed as a TOML value when possible."""
+    if "=" not in text:
+        raise ScenarioError(f"override {text!r}: expected dotted.key=value")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    if not key or any(not p for p in key.split(".")):
+        raise ScenarioError(f"override {text!r}: empty key")
+    try:
+        value = tomllib.loads(f"x = {raw.strip()}")["x"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return key.split("."), value
+
+
+def apply_overrides(data: dict, overrides: list[str]) -> dict:
+    out = _deepcopy(data)
+    for ov in overrides:
+        path, value = parse_override(ov)
+        node = out
+        for p in path[:-1]:
+            nxt = node.get(p)
+            if nxt is None:
+                nxt = node[p] = {}
+            elif not isinstance(nxt, dict):
+                raise ScenarioError(f"override {ov!r}: {p} is not a table")
+            node = nxt
+        node[path[-1]] = value
+    return out
+
+
+def _deepcopy(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _deepcopy(v) for k, v in d.items()}
+    if isinstance(d, list):
+        return [_deepcopy(v) for v in d]
+    return d
+
+
+def scenario_from_dict(data: dict, overrides: list[str] | None = None, source: str = "") -> Scenario:
+    data = apply_overrides(data, overrides or [])
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as err:
+        raise ScenarioError(format_validation_error(err, source)) from None
+
+
+def load_scenario(path: str | Path, overrides: list[str] | None = None) -> Scenario:
+    """Read a TOML scenario file, apply ``dotted.key=value`` overrides, validate."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ScenarioError(f"cannot read scenario {p}: {e.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ScenarioError(f"scenario {p} is not valid TOML: {e}") from None
+    data.setdefault("base_dir", str(p.parent.resolve()))
+    return scenario_from_dict(data, overrides, str(p))
+

@@ -1,0 +1,290 @@
+"""The control core: one deterministic step per sample, no clocks, no I/O, no globals.
+
+``ControlCore.step(sample, incoming)`` reads one measurement and the incoming interaction variable,
+updates the explicit state it owns (estimator, pending commands) and returns the voltage-rate
+command du/dt (V/s) with diagnostics. The simulator, the live daemon and log replay all drive it the
+same way, so the same inputs give bit-identical outputs.
+
+Laws (paper Sec. "Interactive component-level control", RLC instance; derivation in energy.py):
+
+    y_z      = R i^2 - u i                                   (W)
+    y_ref    = P^{r,in} v_ref / v                            (Eqn OutputRefRLCReg, W)
+    dy_ref/dt= dP^{r,in}/dt v_ref / v - P^{r,in} v_ref (dv/dt) / v^2
+    dy_z/dt  = 2 (R i - u) di/dt + u_z,   u_z = Qdot^u = u di/dt - i du/dt
+    FBLC     u_z = -K e + dy_ref/dt - 2 (R i - u) di/dt      (exact cancellation: de/dt = -K e)
+             [cancel_tangent_energy=False: paper's u_z = -eta - K e + dy_ref/dt, de/dt = -K e - 4 E_t]
+    SMC      u_z = -(L_bar + K) sat(e / phi) + dy_ref/dt      (Eqn SMC; phi = 0 -> sign)
+    mapping  continuous: du/dt = (u di/dt - u_z) / i          (Eqn ControlImp, i floored)
+             exact: the constant du/dt over the next period for which the nominal model lands
+                    y_z(T) on the law's target: FBLC e(T) = e(0) exp(-K T); SMC e(T) = e(0) moved
+                    towards 0 by (L_bar + K) T (not past it).
+    LQR      u = u_ref - K1 (i - i_ref) - K2 (v - v_ref), u_ref = v_ref + R P_l / v_ref,
+             i_ref = P_l / v_ref                                  (Eqn CtrlCG, deviation form)
+    BM       u = R i + v_ref - L (Pi / v^2 + K3) dv/dt - K1 (v - v_ref) - K2 dv/dt   (Eqn BMCtrl)
+             (both u-laws are reached by ramping u to the value over one period)
+
+Loop delay: a command computed from the sample at t_k acts from t_{k+d}. The core keeps the d
+commands it already issued and integrates the nominal model over them from the sample (prediction),
+then computes the command for the period that starts at t_{k+d}.
+
+Limits: u in [u_min, u_max] at the end of the period, |du/dt| <= du_dt_max, |i| >= i_floor where the
+continuous mapping divides by i.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+from schemas.scenario import CircuitParams, ControllerConfig
+
+from .energy import RLCEnergy
+from .estimator import EnergyEstimator
+from .types import Incoming, Sample
+
+_PRED_STEP_S = 2.5e-4  # longest RK4 step of the controller's own prediction
+
+
+def predict(i: float, v: float, u: float, P: float, r: float, T: float, n: int,
+            R: float, L: float, C: float) -> tuple[float, float, float]:
+    """Nominal model over T seconds at constant du/dt = r (V/s) and load power P (W); RK4, n steps."""
+    h = T / n
+    hh = 0.5 * h
+    for _ in range(n):
+        k1i = (u - R * i - v) / L
+        k1v = (i - P / v) / C
+        ii, vv = i + hh * k1i, v + hh * k1v
+        um = u + hh * r
+        k2i = (um - R * ii - vv) / L
+        k2v = (ii - P / vv) / C
+        ii, vv = i + hh * k2i, v + hh * k2v
+        k3i = (um - R * ii - vv) / L
+        k3v = (ii - P / vv) / C
+        ii, vv = i + h * k3i, v + h * k3v
+        u1 = u + h * r
+        k4i = (u1 - R * ii - vv) / L
+        k4v = (ii - P / vv) / C
+        i += h / 6.0 * (k1i + 2.0 * k2i + 2.0 * k3i + k4i)
+        v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+        u = u1
+    return i, v, u
+
+
+def predict_with_sensitivity(i: float, v: float, u: float, P: float, r: float, T: float, n: int,
+                             R: float, L: float, C: float) -> tuple[float, float, float, float]:
+    """Nominal model over T at rate r, plus the sensitivity s_i = d i(T)/d r (A per V/s).
+
+    Returns (i(T), v(T), u(T), s_i). The sensitivity obeys the linearised model
+    L ds_i/dt = s_u - R s_i - s_v, C ds_v/dt = s_i + (P / v^2) s_v, s_u = t, s(0) = 0.
+    """
+    h = T / n
+    hh = 0.5 * h
+    si = sv = 0.0
+    tau = 0.0
+    for _ in range(n):
+        k1i = (u - R * i - v) / L
+        k1v = (i - P / v) / C
+        g = P / (v * v)
+        k1si = (tau - R * si - sv) / L
+        k1sv = (si + g * sv) / C
+        ii, vv = i + hh * k1i, v + hh * k1v
+        s2i, s2v = si + hh * k1si, sv + hh * k1sv
+        um = u + hh * r
+        g = P / (vv * vv)
+        k2i = (um - R * ii - vv) / L
+        k2v = (ii - P / vv) / C
+        k2si = (tau + hh - R * s2i - s2v) / L
+        k2sv = (s2i + g * s2v) / C
+        ii, vv = i + hh * k2i, v + hh * k2v
+        s3i, s3v = si + hh * k2si, sv + hh * k2sv
+        g = P / (vv * vv)
+        k3i = (um - R * ii - vv) / L
+        k3v = (ii - P / vv) / C
+        k3si = (tau + hh - R * s3i - s3v) / L
+        k3sv = (s3i + g * s3v) / C
+        ii, vv = i + h * k3i, v + h * k3v
+        s4i, s4v = si + h * k3si, sv + h * k3sv
+        u1 = u + h * r
+        g = P / (vv * vv)
+        k4i = (u1 - R * ii - vv) / L
+        k4v = (ii - P / vv) / C
+        k4si = (tau + h - R * s4i - s4v) / L
+        k4sv = (s4i + g * s4v) / C
+        i += h / 6.0 * (k1i + 2.0 * k2i + 2.0 * k3i + k4i)
+        v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+        si += h / 6.0 * (k1si + 2.0 * k2si + 2.0 * k3si + k4si)
+        sv += h / 6.0 * (k1sv + 2.0 * k2sv + 2.0 * k3sv + k4sv)
+        u = u1
+        tau += h
+    return i, v, u, si
+
+
+def solve_rate_for_target(R: float, T: float, i1: float, u1: float, si: float, y_target: float) -> float:
+    """delta (V/s) so that y_z = R i^2 - u i at the period's end equals y_target.
+
+    With i(T) = i1 + si delta and u(T) = u1 + T delta (exact for the linearised model),
+    y(delta) = a delta^2 + b delta + c is solved for the root on the branch through delta = 0;
+    if the target is out of reach the extremum of y is returned.
+    """
+    a = R * si * si - T * si
+    b = 2.0 * R * i1 * si - u1 * si - T * i1
+    c = R * i1 * i1 - u1 * i1 - y_target
+    if abs(a) * abs(c) < 1e-12 * b * b:
+        return -c / b if b != 0.0 else 0.0
+    disc = b * b - 4.0 * a * c
+    if disc < 0.0:
+        return -b / (2.0 * a)
+    q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
+    return c / q if q != 0.0 else 0.0
+
+
+class Output:
+    """What one step returns (reused each step; copy what you keep)."""
+
+    __slots__ = ("seq", "t", "du_dt", "du_dt_raw", "u_z", "y_z", "y_ref", "e", "limited", "est", "z_out0",
+                 "z_out1", "i_pred", "v_pred", "u_pred")
+
+    def __init__(self) -> None:
+        self.seq = 0
+        self.t = self.du_dt = self.du_dt_raw = self.u_z = self.y_z = self.y_ref = self.e = 0.0
+        self.i_pred = self.v_pred = self.u_pred = self.z_out0 = self.z_out1 = 0.0
+        self.limited = False
+        self.est: RLCEnergy | None = None
+
+
+def effective_gain(cfg: ControllerConfig, model: CircuitParams) -> float:
+    """K used for tau' in the feasibility ranges (paper: K2 for the proportional law, K for FBLC)."""
+    if cfg.kind in ("fblc", "smc"):
+        return cfg.K_per_s
+    if cfg.kind == "lqr":
+        return abs(cfg.lqr_K2)
+    if cfg.kind == "bm":  # real part of the linear closed loop's poles
+        return (model.L_H * cfg.bm_K3_S + cfg.bm_K2_s) / (2.0 * model.L_H * model.C_F)
+    return 0.0
+
+
+class ControlCore:
+    """Deterministic controller for one RLC source component. See the module docstring."""
+
+    def __init__(self, cfg: ControllerConfig, model: CircuitParams, period_s: float, loop_delay_samples: int = 0):
+        self.cfg = cfg
+        self.model = model
+        self.T = float(period_s)
+        self.d = cfg.delay_compensation_samples if cfg.delay_compensation_samples is not None else loop_delay_samples
+        self.n_pred = max(1, math.ceil(self.T / _PRED_STEP_S - 1e-9))
+        self.estimator = EnergyEstimator(model.R_ohm, model.L_H, model.C_F, cfg.deriv_tau_s)
+        self.out = Output()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget history (new run, plant restart)."""
+        self.pending: deque[float] = deque([0.0] * self.d, maxlen=max(self.d, 1))
+        self.r_prev = 0.0
+        self.estimator.reset()
+        self.steps = 0
+
+    def set_gains(self, cfg: ControllerConfig) -> None:
+        """Swap gains and limits between steps (the caller validated cfg)."""
+        self.cfg = cfg
+
+    def applied_rate(self) -> float:
+        """du/dt acting on the plant now, as far as the controller knows (V/s)."""
+        return self.pending[0] if self.d > 0 else self.r_prev
+
+    def step(self, s: Sample, inc: Incoming) -> Output:
+        cfg, lim = self.cfg, self.cfg.limits
+        R, L, C = self.model.R_ohm, self.model.L_H, self.model.C_F
+        T, d = self.T, self.d
+        out = self.out
+        est = self.estimator.update(s.t, s.i, s.v, s.u, s.i_load, self.applied_rate())
+        if est is not None:
+            out.est = est
+            out.z_out0, out.z_out1 = self.estimator.z_out
+
+        # --- state at the start of the period this command will act on (delay prediction) ---
+        P_meas = s.v * s.i_load
+        Pdot = -inc.P_r_in_dot  # the load's rate as announced by the neighbour
+        i_p, v_p, u_p = s.i, s.v, s.u
+        if d > 0:
+            for k, r_k in enumerate(self.pending):
+                i_p, v_p, u_p = predict(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, self.n_pred, R, L, C)
+                u_p = min(max(u_p, lim.u_min_V), lim.u_max_V)
+        P_app = P_meas + Pdot * (d + 0.5) * T  # load power over the coming period
+        out.i_pred, out.v_pred, out.u_pred = i_p, v_p, u_p
+
+        # --- energy-space output and reference at the sample (reported) and at t_{k+d} ---
+        v_ref = cfg.v_ref_V
+        out.y_z = R * s.i * s.i - s.u * s.i
+        out.y_ref = inc.P_r_in * v_ref / s.v
+        out.e = out.y_z - out.y_ref
+        P_in_app = inc.P_r_in + inc.P_r_in_dot * d * T
+        kind = cfg.kind
+        r_max = lim.du_dt_max_V_per_s
+        r_lo = max(-r_max, (lim.u_min_V - u_p) / T)
+        r_hi = max(r_lo, min(r_max, (lim.u_max_V - u_p) / T))
+        u_z = 0.0
+
+        if kind == "fixed":
+            r = 0.0
+        elif kind == "lqr":
+            P_l = -inc.P_r_in
+            i_ref = P_l / v_ref
+            u_ref = v_ref + R * P_l / v_ref
+            u_des = u_ref - cfg.lqr_K1_ohm * (i_p - i_ref) - cfg.lqr_K2 * (v_p - v_ref)
+            r = (u_des - u_p) / T
+        elif kind == "bm":
+            dv = (i_p - P_app / v_p) / C
+            u_des = (R * i_p + v_ref - L * (cfg.bm_Pi_W / (v_p * v_p) + cfg.bm_K3_S) * dv
+                     - cfg.bm_K1 * (v_p - v_ref) - cfg.bm_K2_s * dv)
+            r = (u_des - u_p) / T
+        else:
+            K = cfg.K_per_s
+            y_p = R * i_p * i_p - u_p * i_p
+            e_p = y_p - P_in_app * v_ref / v_p
+            di = (u_p - R * i_p - v_p) / L
+            dv = (i_p - P_app / v_p) / C
+            four_Et = 2.0 * (L * di * di + C * dv * dv)
+            alpha = cfg.smc_bound_W_per_s + K
+            if cfg.mapping == "continuous":
+                dy_ref = inc.P_r_in_dot * v_ref / v_p - P_in_app * v_ref * dv / (v_p * v_p)
+                if kind == "fblc":
+                    u_z = -K * e_p + dy_ref - 2.0 * (R * i_p - u_p) * di
+                    if not cfg.cancel_tangent_energy:
+                        u_z -= four_Et
+                else:
+                    phi = cfg.smc_boundary_W
+                    sat = max(-1.0, min(1.0, e_p / phi)) if phi > 0.0 else (1.0 if e_p > 0 else -1.0 if e_p < 0 else 0.0)
+                    u_z = -alpha * sat + dy_ref
+                i_f = max(i_p, lim.i_floor_A) if i_p >= 0.0 else min(i_p, -lim.i_floor_A)
+                r = (u_p * di - u_z) / i_f
+            else:
+                r0 = min(max(self.r_prev, r_lo), r_hi)
+                i1, v1, u1, si = predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, self.n_pred, R, L, C)
+                if kind == "fblc":
+                    e1 = e_p * math.exp(-K * T)
+                    if not cfg.cancel_tangent_energy:
+                        e1 -= four_Et * T
+                else:
+                    phi = cfg.smc_boundary_W
+                    stepv = alpha * T * (max(-1.0, min(1.0, e_p / phi)) if phi > 0.0 else math.copysign(1.0, e_p))
+                    e1 = 0.0 if abs(stepv) >= abs(e_p) else e_p - stepv
+                y_target = (inc.P_r_in + inc.P_r_in_dot * (d + 1) * T) * v_ref / v1 + e1
+                r = r0 + solve_rate_for_target(R, T, i1, u1, si, y_target)
+                u_z = u_p * di - i_p * r  # the Qdot^u this command implies at t_{k+d}
+
+        raw = r
+        if not math.isfinite(r):
+            r = 0.0
+        r = min(max(r, (lim.u_min_V - u_p) / T), (lim.u_max_V - u_p) / T)  # u stays in range ...
+        r = min(max(r, -r_max), r_max)  # ... unless that would break the slew limit
+        out.limited = r != raw
+        out.du_dt_raw = raw
+        out.du_dt = r
+        out.u_z = u_z
+        out.seq = s.seq
+        out.t = s.t
+        self.r_prev = r
+        if d > 0:
+            self.pending.append(r)
+        self.steps += 1
+        return out

@@ -1,0 +1,97 @@
+"""Interconnection-level feasibility (paper Sec. "Interconnection-level feasibility conditions").
+
+Per window k of length T_s, from the neighbour's load forecast P_l in [P_min, P_max] and
+dP_l/dt in [Pdot_min, Pdot_max] (paper Eqn IncomingIntRange):
+
+    P^{r,in}    in [-P_max, -P_min]                                   (W)
+    Qdot^{r,in} in [-Pdot_max, -Pdot_min] + (2/tau') [-P_max, P_max]  (W/s)
+    tau' = min(10 L / R, 1 / K)                                       (s)
+
+The printed equation adds (2/tau')[P_min, P_max]; it comes from Qdot^{r,in} = -dP/dt + 2 P (dv/dt)/v
+(Eqn Qinj) with |dv/dt| / v <= 1/tau', whose sign is not fixed, so the symmetric interval is the sound
+one. ``literal=True`` gives the printed one.
+
+The component's own Z^{r,out}[k] is the range of its outgoing rates (P^{r,out}, Qdot^{r,out}) in the
+window; the check (Eqn FeasibilityConds) is element-wise membership, and each excursion outside the
+incoming range is a violation, recorded with its start time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+
+def tau_prime(L: float, R: float, K: float) -> float:
+    """tau' = min(10 L/R, 1/K) (s); a zero R or K drops that term."""
+    a = 10.0 * L / R if R > 0 else math.inf
+    b = 1.0 / K if K > 0 else math.inf
+    return min(a, b)
+
+
+def incoming_range(P_min: float, P_max: float, Pdot_min: float, Pdot_max: float, tau_p: float,
+                   literal: bool = False) -> tuple[float, float, float, float]:
+    """(P_lo, P_hi, Qdot_lo, Qdot_hi) of the incoming interaction variable for one window."""
+    g = 2.0 / tau_p
+    lo_off = g * P_min if literal else -g * max(abs(P_min), abs(P_max))
+    hi_off = g * P_max if literal else g * max(abs(P_min), abs(P_max))
+    return -P_max, -P_min, -Pdot_max + lo_off, -Pdot_min + hi_off
+
+
+@dataclass
+class Violation:
+    t: float  # s, start of the excursion
+    element: str  # "P" or "Qdot"
+    value: float
+    lo: float
+    hi: float
+
+
+@dataclass
+class WindowRange:
+    k: int
+    z_in: tuple[float, float, float, float]
+    z_out: list[float] = field(default_factory=lambda: [math.inf, -math.inf, math.inf, -math.inf])
+
+    @property
+    def inside(self) -> bool:
+        P_lo, P_hi, Q_lo, Q_hi = self.z_in
+        o = self.z_out
+        return P_lo <= o[0] and o[1] <= P_hi and Q_lo <= o[2] and o[3] <= Q_hi
+
+
+class FeasibilityMonitor:
+    """Tracks Z^{r,out}[k] against Z^{r,in}[k] sample by sample; no I/O."""
+
+    def __init__(self, window_s: float, rel_tol: float = 1e-9):
+        self.window_s = window_s
+        self.rel_tol = rel_tol
+        self.windows: dict[int, WindowRange] = {}
+        self.violations: list[Violation] = []
+        self._outside = {"P": False, "Qdot": False}
+        self.count = 0
+
+    def set_range(self, k: int, z_in: tuple[float, float, float, float]) -> None:
+        self.windows[k] = WindowRange(k, z_in)
+
+    def update(self, t: float, P_out: float, Qdot_out: float) -> None:
+        k = int(t // self.window_s)
+        w = self.windows.get(k)
+        if w is None:
+            return  # no forecast for this window: nothing to check against
+        o = w.z_out
+        o[0] = min(o[0], P_out)
+        o[1] = max(o[1], P_out)
+        o[2] = min(o[2], Qdot_out)
+        o[3] = max(o[3], Qdot_out)
+        P_lo, P_hi, Q_lo, Q_hi = w.z_in
+        self._check(t, "P", P_out, P_lo, P_hi)
+        self._check(t, "Qdot", Qdot_out, Q_lo, Q_hi)
+
+    def _check(self, t: float, name: str, x: float, lo: float, hi: float) -> None:
+        tol = self.rel_tol * max(abs(lo), abs(hi), 1.0)
+        out = not (lo - tol <= x <= hi + tol)
+        if out and not self._outside[name]:
+            self.violations.append(Violation(t, name, x, lo, hi))
+            self.count += 1
+        self._outside[name] = out

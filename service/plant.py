@@ -1,0 +1,158 @@
+"""The physics: RLC source branch feeding a constant-power load, and its sensor chain.
+
+Used by the offline simulator and by the hardware-in-the-loop stand-in, so both produce the same
+trajectory for the same commands. No clocks, no I/O.
+
+    L di/dt = u + u_m - R i - v          (u_m: optional matched disturbance voltage, V)
+    C dv/dt = i - i_2,   i_2 = P_l / v    (constant-power load; below v_cpl_min it is a resistor)
+    du/dt   = r                           (commanded voltage rate, V/s, held over a control period;
+                                           u stays inside the source's [u_min, u_max])
+"""
+
+from __future__ import annotations
+
+import math
+import numpy as np
+
+from schemas.scenario import PlantConfig, SensorConfig
+
+from .profiles import Profile
+from .types import Sample
+
+
+def load_current(P_W: float, v_V: float, v_min_V: float) -> float:
+    """i_2 (A) drawn by a constant-power load P_W at terminal voltage v_V; resistive below v_min_V."""
+    if v_V >= v_min_V:
+        return P_W / v_V
+    return P_W * v_V / (v_min_V * v_min_V)
+
+
+class RLCPlant:
+    """Fixed-step RK4 integration of the circuit; state t (s), i (A), v (V), u (V)."""
+
+    __slots__ = ("R", "L", "C", "u_min", "u_max", "v_min", "load", "dist", "t", "i", "v", "u")
+
+    def __init__(self, cfg: PlantConfig, load: Profile, disturbance: Profile | None = None):
+        self.R, self.L, self.C = cfg.R_ohm, cfg.L_H, cfg.C_F
+        self.u_min, self.u_max = cfg.source.u_min_V, cfg.source.u_max_V
+        self.v_min = cfg.v_cpl_min_V
+        self.load, self.dist = load, disturbance
+        ini = cfg.initial
+        self.t = 0.0
+        self.i, self.v = float(ini.i_A), float(ini.v_V)
+        u0 = ini.u_V if ini.u_V is not None else ini.v_V + cfg.R_ohm * ini.i_A
+        self.u = min(max(float(u0), self.u_min), self.u_max)
+
+    def load_power(self, t: float) -> float:
+        return self.load.value(t)
+
+    def i_load(self) -> float:
+        return load_current(self.load.value(self.t), self.v, self.v_min)
+
+    def u_m(self, t: float) -> float:
+        return self.dist.value(t) if self.dist is not None else 0.0
+
+    def derivatives(self, r: float = 0.0) -> tuple[float, float, float, float]:
+        """Exact (di/dt, dv/dt, du/dt, di_2/dt) at the current state under commanded rate r."""
+        t, i, v, u = self.t, self.i, self.v, self.u
+        P = self.load.value(t)
+        di = (u + self.u_m(t) - self.R * i - v) / self.L
+        i2 = load_current(P, v, self.v_min)
+        dv = (i - i2) / self.C
+        du = r if (self.u_min < u < self.u_max or (u <= self.u_min and r > 0) or (u >= self.u_max and r < 0)) else 0.0
+        Pdot = self.load.rate(t)
+        if v >= self.v_min:
+            di2 = Pdot / v - P * dv / (v * v)
+        else:
+            di2 = (Pdot * v + P * dv) / (self.v_min * self.v_min)
+        return di, dv, du, di2
+
+    def advance(self, r: float, T: float, n_sub: int) -> None:
+        """Integrate over T seconds with constant commanded rate r (V/s) in n_sub RK4 steps."""
+        R, L, C, vmin = self.R, self.L, self.C, self.v_min
+        umin, umax = self.u_min, self.u_max
+        load, dist = self.load.value, (self.dist.value if self.dist is not None else None)
+        h = T / n_sub
+        hh = 0.5 * h
+        t, i, v, u = self.t, self.i, self.v, self.u
+        P0 = load(t)
+        m0 = dist(t) if dist else 0.0
+        for _ in range(n_sub):
+            t1 = t + h
+            P1 = load(t1)
+            Pm = 0.5 * (P0 + P1)
+            if dist:
+                m1 = dist(t1)
+                mm = 0.5 * (m0 + m1)
+            else:
+                m1 = mm = 0.0
+            # the source ramps at r and is clipped to its range (exact for u)
+            ua = u
+            um_ = min(max(u + r * hh, umin), umax)
+            ub = min(max(u + r * h, umin), umax)
+            # k1
+            i2 = P0 / v if v >= vmin else P0 * v / (vmin * vmin)
+            ki1 = (ua + m0 - R * i - v) / L
+            kv1 = (i - i2) / C
+            # k2
+            ii = i + hh * ki1
+            vv = v + hh * kv1
+            i2 = Pm / vv if vv >= vmin else Pm * vv / (vmin * vmin)
+            ki2 = (um_ + mm - R * ii - vv) / L
+            kv2 = (ii - i2) / C
+            # k3
+            ii = i + hh * ki2
+            vv = v + hh * kv2
+            i2 = Pm / vv if vv >= vmin else Pm * vv / (vmin * vmin)
+            ki3 = (um_ + mm - R * ii - vv) / L
+            kv3 = (ii - i2) / C
+            # k4
+            ii = i + h * ki3
+            vv = v + h * kv3
+            i2 = P1 / vv if vv >= vmin else P1 * vv / (vmin * vmin)
+            ki4 = (ub + m1 - R * ii - vv) / L
+            kv4 = (ii - i2) / C
+            i += h / 6.0 * (ki1 + 2.0 * ki2 + 2.0 * ki3 + ki4)
+            v += h / 6.0 * (kv1 + 2.0 * kv2 + 2.0 * kv3 + kv4)
+            u = ub
+            t = t1
+            P0, m0 = P1, m1
+        self.t, self.i, self.v, self.u = t, i, v, u
+
+
+class Sensor:
+    """Seeded white noise and quantisation on i, v, u, i_load; drawn in blocks (same stream everywhere)."""
+
+    BLOCK = 4096
+
+    def __init__(self, cfg: SensorConfig, seed: int):
+        self.sv, self.si = cfg.noise_v_V, cfg.noise_i_A
+        self.qv, self.qi = cfg.lsb_v_V, cfg.lsb_i_A
+        self.rng = np.random.default_rng(seed)
+        self.noisy = self.sv > 0 or self.si > 0
+        self._buf: list[float] = []
+        self._k = 0
+
+    def _next4(self) -> tuple[float, float, float, float]:
+        k = self._k
+        if k + 4 > len(self._buf):
+            self._buf = self.rng.standard_normal(self.BLOCK * 4).tolist()
+            k = 0
+        self._k = k + 4
+        b = self._buf
+        return b[k], b[k + 1], b[k + 2], b[k + 3]
+
+    def measure(self, seq: int, t: float, i: float, v: float, u: float, i_load: float) -> Sample:
+        if self.noisy:
+            n0, n1, n2, n3 = self._next4()
+            i += self.si * n0
+            v += self.sv * n1
+            u += self.sv * n2
+            i_load += self.si * n3
+        if self.qi > 0:
+            i = self.qi * math.floor(i / self.qi + 0.5)
+            i_load = self.qi * math.floor(i_load / self.qi + 0.5)
+        if self.qv > 0:
+            v = self.qv * math.floor(v / self.qv + 0.5)
+            u = self.qv * math.floor(u / self.qv + 0.5)
+        return Sample(seq, t, i, v, u, i_load)

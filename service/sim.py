@@ -1,0 +1,144 @@
+"""Offline closed loop: plant + sensor + loop delay + the control core, as fast as the machine allows.
+
+One control period per iteration: measure -> core.step -> delay line -> plant.advance. The
+neighbour's incoming interaction variable is formed from the load profile exactly as the daemon
+forms it from the neighbour's messages (P^{r,in} = -P_l, dP^{r,in}/dt = -dP_l/dt).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from schemas.scenario import Scenario
+
+from .core import ControlCore, effective_gain
+from .feasibility import FeasibilityMonitor, Violation, incoming_range, tau_prime
+from .plant import RLCPlant, Sensor, load_current
+from .profiles import Profile
+from .types import Incoming
+
+BAND_SETTLE = 0.02  # +-2 % of v_ref
+HOLD_FROM_S = 0.05  # "holds" metric looks at t >= this
+
+TRACE_FIELDS = (
+    "t", "i", "v", "u", "i_load", "P_l",  # true plant state at the sample instant
+    "i_meas", "v_meas", "u_meas", "i_load_meas",  # what the controller saw
+    "du_dt", "du_dt_applied", "u_z", "y_z_true", "y_ref_true", "y_z", "y_ref",
+    "E", "E_t", "p", "y_z_balance", "eta", "P_r_out", "Qdot_r_out", "z_out0", "z_out1",
+)
+
+
+@dataclass
+class SimResult:
+    scenario: Scenario
+    trace: dict[str, np.ndarray]
+    metrics: dict
+    violations: list[Violation] = field(default_factory=list)
+    windows: list = field(default_factory=list)
+
+
+def substeps(period_s: float, plant_step_s: float) -> int:
+    return max(1, math.ceil(period_s / plant_step_s - 1e-9))
+
+
+def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
+    tm = scn.timing
+    T = 1.0 / tm.control_rate_hz
+    n_sub = substeps(T, tm.plant_step_s)
+    N = int(round(tm.duration_s / T))
+    load = Profile(scn.load, scn.base_dir)
+    dist = Profile(scn.disturbance, scn.base_dir) if scn.disturbance is not None else None
+    plant = RLCPlant(scn.plant, load, dist)
+    sensor = Sensor(scn.sensor, scn.seed)
+    core = ControlCore(scn.controller, scn.model, T, tm.delay_samples)
+    delay: deque[float] = deque([0.0] * tm.delay_samples)
+
+    feas = FeasibilityMonitor(scn.feasibility.window_s)
+    tp = tau_prime(scn.model.L_H, scn.model.R_ohm, effective_gain(scn.controller, scn.model))
+    n_win = max(1, math.ceil(tm.duration_s / scn.feasibility.window_s - 1e-9))
+    margin = scn.feasibility.forecast_margin
+    for k in range(n_win):
+        t0 = k * scn.feasibility.window_s
+        lo, hi, dlo, dhi = load.range_over(t0, min(t0 + scn.feasibility.window_s, tm.duration_s))
+        span = max(abs(lo), abs(hi)) * margin
+        dspan = max(abs(dlo), abs(dhi)) * margin
+        feas.set_range(k, incoming_range(lo - span, hi + span, dlo - dspan, dhi + dspan, tp,
+                                         scn.feasibility.literal_paper_range))
+
+    rec = {f: [] for f in TRACE_FIELDS}
+    ap = {f: rec[f].append for f in TRACE_FIELDS}
+    R_true, v_ref = scn.plant.R_ohm, scn.controller.v_ref_V
+    v_lo, v_hi = 0.5 * v_ref, 2.0 * v_ref  # leaving +-50 % counts as divergence
+    inc = Incoming(0.0, 0.0)
+    diverged = False
+    for k in range(N):
+        t = plant.t
+        P_l = load.value(t)
+        i2 = load_current(P_l, plant.v, plant.v_min)
+        s = sensor.measure(k, t, plant.i, plant.v, plant.u, i2)
+        inc.P_r_in = -P_l
+        inc.P_r_in_dot = -load.rate(t)
+        out = core.step(s, inc)
+        if tm.delay_samples:
+            delay.append(out.du_dt)
+            r_apply = delay.popleft()
+        else:
+            r_apply = out.du_dt
+        est = out.est
+        feas.update(t, est.P_r_out, est.Qdot_r_out)
+        um = plant.u_m(t)
+        ap["t"](t); ap["i"](plant.i); ap["v"](plant.v); ap["u"](plant.u); ap["i_load"](i2); ap["P_l"](P_l)
+        ap["i_meas"](s.i); ap["v_meas"](s.v); ap["u_meas"](s.u); ap["i_load_meas"](s.i_load)
+        ap["du_dt"](out.du_dt); ap["du_dt_applied"](r_apply); ap["u_z"](out.u_z)
+        ap["y_z_true"](R_true * plant.i ** 2 - (plant.u + um) * plant.i)
+        ap["y_ref_true"](-P_l * v_ref / plant.v)
+        ap["y_z"](out.y_z); ap["y_ref"](out.y_ref)
+        ap["E"](est.E); ap["E_t"](est.E_t); ap["p"](est.p); ap["y_z_balance"](est.y_z_balance)
+        ap["eta"](est.eta); ap["P_r_out"](est.P_r_out); ap["Qdot_r_out"](est.Qdot_r_out)
+        ap["z_out0"](out.z_out0); ap["z_out1"](out.z_out1)
+        plant.advance(r_apply, T, n_sub)
+        if not (v_lo < plant.v < v_hi) or not math.isfinite(plant.i) or abs(plant.i) > 1e4:
+            diverged = True
+            if stop_on_divergence:
+                break
+    trace = {f: np.asarray(v, dtype=float) for f, v in rec.items()}
+    metrics = compute_metrics(trace, v_ref, tm.duration_s, diverged, feas.count)
+    return SimResult(scn, trace, metrics, feas.violations, list(feas.windows.values()))
+
+
+def compute_metrics(tr: dict[str, np.ndarray], v_ref: float, duration_s: float, diverged: bool,
+                    n_violations: int) -> dict:
+    t, v = tr["t"], tr["v"]
+    dev = np.abs(v - v_ref)
+    outside = np.nonzero(dev > BAND_SETTLE * v_ref)[0]
+    if diverged or len(t) == 0:
+        settle = None
+    elif len(outside) == 0:
+        settle = 0.0
+    elif outside[-1] == len(t) - 1:
+        settle = None  # still outside at the end
+    else:
+        settle = float(t[outside[-1] + 1])
+    n = len(t)
+    tail = slice(int(n * 0.9), n) if n else slice(0, 0)
+    hold = t >= HOLD_FROM_S
+    err = tr["y_z_true"] - tr["y_ref_true"]
+    m = {
+        "settle_s": settle,
+        "v_min": float(v.min()) if n else None,
+        "v_max": float(v.max()) if n else None,
+        "ss_error": float(dev[tail].mean()) if n else None,
+        "hold_max_dev_pct": float(dev[hold].max() / v_ref * 100) if hold.any() else None,
+        "rms_du_dt": float(np.sqrt(np.mean(tr["du_dt_applied"] ** 2))) if n else None,
+        "max_abs_du_dt": float(np.abs(tr["du_dt_applied"]).max()) if n else None,
+        "rms_tracking_error": float(np.sqrt(np.mean(err ** 2))) if n else None,
+        "feasibility_violations": int(n_violations),
+        "diverged": bool(diverged),
+        "t_end": float(t[-1]) if n else 0.0,
+        "duration_s": duration_s,
+    }
+    return m
