@@ -147,7 +147,7 @@ class ControllerConfig(Strict):
         description="True: u_z cancels eta - 4E_t so e decays at exactly K; False: paper's general form "
         "u_z = -eta - K e + dy_ref/dt, which leaves -4E_t in the closed loop",
     )
-    smc_bound_W_per_s: NonNeg = Field(default=2.0e5, description="L-bar, bound on the uncancelled term")
+    smc_bound_W_per_s: NonNeg = Field(default=1.0e6, description="L-bar, bound on the uncancelled term")
     smc_boundary_W: NonNeg = Field(default=0.0, description="boundary layer width phi; 0 = pure sign")
     lqr_K1_ohm: Finite = 0.4512
     lqr_K2: Finite = 0.45

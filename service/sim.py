@@ -69,6 +69,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
         feas.set_range(k, incoming_range(lo - span, hi + span, dlo - dspan, dhi + dspan, tp,
                                          scn.feasibility.literal_paper_range))
 
+    t_warm = 5.0 * scn.controller.deriv_tau_s  # derivative estimates need ~5 tau of history
     rec = {f: [] for f in TRACE_FIELDS}
     ap = {f: rec[f].append for f in TRACE_FIELDS}
     R_true, v_ref = scn.plant.R_ohm, scn.controller.v_ref_V
@@ -89,7 +90,8 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
         else:
             r_apply = out.du_dt
         est = out.est
-        feas.update(t, est.P_r_out, est.Qdot_r_out)
+        if t >= t_warm:
+            feas.update(t, est.P_r_out, est.Qdot_r_out)
         um = plant.u_m(t)
         ap["t"](t); ap["i"](plant.i); ap["v"](plant.v); ap["u"](plant.u); ap["i_load"](i2); ap["P_l"](P_l)
         ap["i_meas"](s.i); ap["v_meas"](s.v); ap["u_meas"](s.u); ap["i_load_meas"](s.i_load)

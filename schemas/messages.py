@@ -1,0 +1,86 @@
+"""Message models (SI units). The JSON Schemas in MCAP files and in schemas/json/ come from these."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class Msg(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Measurement(Msg):
+    """One sample from the plant (topic ``.../meas``)."""
+
+    seq: int = Field(ge=0)
+    t: float = Field(description="sample time, s")
+    i: float = Field(description="source-branch current, A")
+    v: float = Field(description="terminal voltage, V")
+    u: float = Field(description="source voltage, V")
+    i_load: float = Field(description="load current i_2, A")
+
+
+class Command(Msg):
+    """Voltage-rate command answering one measurement (topic ``.../cmd``)."""
+
+    seq: int = Field(ge=0, description="sequence number of the measurement it answers")
+    t: float = Field(description="time of the measurement it answers, s")
+    du_dt: float = Field(description="commanded source voltage rate, V/s")
+    limited: bool = Field(default=False, description="the command was clipped by actuator limits")
+
+
+class Estimate(Msg):
+    """Estimator internals and energy-space signals (topic ``.../est``)."""
+
+    t: float = Field(description="s")
+    E: float = Field(description="stored energy, J")
+    p: float = Field(description="dE/dt, W")
+    E_t: float = Field(description="stored energy in tangent space, J/s^2")
+    y_z: float = Field(description="output of interest R i^2 - u i, W")
+    y_z_balance: float = Field(description="R-free output -(P_l + p), W")
+    y_ref: float = Field(description="reference P^{r,in} v_ref / v, W")
+    eta: float = Field(description="nonlinear term 4E_t + 2(R i - u) di/dt, W/s")
+    u_z: float = Field(description="energy-space control Qdot^u, W/s")
+    P_r_out: float = Field(description="outgoing interaction rate P^{r,out}, W")
+    Qdot_r_out: float = Field(description="outgoing interaction rate Qdot^{r,out}, W/s")
+    z_out0: float = Field(description="integral of P^{r,out}, J")
+    z_out1: float = Field(description="integral of Qdot^{r,out}, W")
+
+
+class Plant(Msg):
+    """True plant state in simulation (topic ``.../plant``); not available on real hardware."""
+
+    t: float = Field(description="s")
+    i: float = Field(description="A")
+    v: float = Field(description="V")
+    u: float = Field(description="V")
+    P_l: float = Field(description="load power, W")
+
+
+MESSAGE_MODELS: dict[str, type[Msg]] = {
+    "energyctl.Measurement": Measurement,
+    "energyctl.Command": Command,
+    "energyctl.Estimate": Estimate,
+    "energyctl.Plant": Plant,
+}
+
+
+def json_schema(model: type[BaseModel]) -> dict:
+    return model.model_json_schema()
+
+
+def write_json_schemas(out_dir: str | Path) -> list[Path]:
+    """Write one <name>.json per message model and the scenario model; returns the paths."""
+    from .scenario import Scenario
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, model in {**MESSAGE_MODELS, "energyctl.Scenario": Scenario}.items():
+        p = out / f"{name}.json"
+        p.write_text(json.dumps(json_schema(model), indent=2, sort_keys=True) + "\n")
+        paths.append(p)
+    return paths

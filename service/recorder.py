@@ -1,0 +1,75 @@
+"""MCAP output: JSON messages with JSON Schemas generated from schemas/messages.py, zstd chunks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from mcap.writer import CompressionType, Writer
+
+from schemas.messages import MESSAGE_MODELS, json_schema
+
+from . import __version__
+
+
+class McapFile:
+    """A small MCAP writer: register a topic with a message model, then add pre-built dicts."""
+
+    def __init__(self, path: str | Path, chunk_size: int = 1 << 20):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "wb")
+        self._w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._w.start(profile="", library=f"energyctl {__version__}")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._seq: dict[str, int] = {}
+
+    def channel(self, topic: str, schema_name: str) -> int:
+        if schema_name not in self._schemas:
+            sch = json.dumps(json_schema(MESSAGE_MODELS[schema_name])).encode()
+            self._schemas[schema_name] = self._w.register_schema(schema_name, "jsonschema", sch)
+        cid = self._w.register_channel(topic, "json", self._schemas[schema_name])
+        self._channels[topic] = cid
+        self._seq[topic] = 0
+        return cid
+
+    def add(self, topic: str, t_s: float, payload: dict) -> None:
+        ns = int(round(t_s * 1e9))
+        seq = self._seq[topic]
+        self._seq[topic] = seq + 1
+        self._w.add_message(self._channels[topic], log_time=ns, publish_time=ns, sequence=seq,
+                            data=json.dumps(payload, separators=(",", ":")).encode())
+
+    def metadata(self, name: str, data: dict[str, str]) -> None:
+        self._w.add_metadata(name, data)
+
+    def close(self) -> None:
+        self._w.finish()
+        self._f.close()
+
+
+def write_sim_mcap(path: str | Path, result, prefix: str = "energyctl/sim") -> Path:
+    """Write a SimResult: channels <prefix>/meas, /cmd, /est, /plant and a ``scenario`` metadata record."""
+    tr = result.trace
+    f = McapFile(path)
+    f.metadata("scenario", {"json": result.scenario.model_dump_json(), "version": __version__})
+    f.metadata("metrics", {"json": json.dumps(result.metrics)})
+    for topic, schema in (("meas", "energyctl.Measurement"), ("cmd", "energyctl.Command"),
+                          ("est", "energyctl.Estimate"), ("plant", "energyctl.Plant")):
+        f.channel(f"{prefix}/{topic}", schema)
+    cols = {k: v.tolist() for k, v in tr.items()}
+    est_keys = ("E", "p", "E_t", "y_z", "y_z_balance", "y_ref", "eta", "u_z", "P_r_out", "Qdot_r_out",
+                "z_out0", "z_out1")
+    for k, t in enumerate(cols["t"]):
+        f.add(f"{prefix}/meas", t, {"seq": k, "t": t, "i": cols["i_meas"][k], "v": cols["v_meas"][k],
+                                    "u": cols["u_meas"][k], "i_load": cols["i_load_meas"][k]})
+        f.add(f"{prefix}/cmd", t, {"seq": k, "t": t, "du_dt": cols["du_dt"][k], "limited": False})
+        est = {"t": t}
+        for key in est_keys:
+            est[key] = cols[key][k]
+        f.add(f"{prefix}/est", t, est)
+        f.add(f"{prefix}/plant", t, {"t": t, "i": cols["i"][k], "v": cols["v"][k], "u": cols["u"][k],
+                                     "P_l": cols["P_l"][k]})
+    f.close()
+    return Path(path)
