@@ -12,6 +12,7 @@ trajectory for the same commands. No clocks, no I/O.
 from __future__ import annotations
 
 import math
+
 import numpy as np
 
 from schemas.scenario import PlantConfig, SensorConfig

@@ -1,0 +1,373 @@
+"""energyctl: command-line entry point.
+
+Subcommands: sim, compare, sweep, demo, bench, schema. Each has --help.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+from schemas.scenario import ScenarioError, load_scenario, parse_override
+from service import __version__
+
+from .table import metrics_table, render
+
+EMBEDDED = Path(__file__).parent / "embedded"
+CONTROLLERS = ("fblc", "smc", "lqr", "bm", "fixed")
+
+ROBUSTNESS_GRID = {
+    "timing.control_rate_hz": [5000.0, 10000.0, 20000.0],
+    "timing.delay_samples": [0, 1, 2, 3],
+    "plant.initial.i_A": [0.5, 1.0, 15.0, 30.0],
+    "load.value": [300.0, 1200.0, 2400.0],
+    "sensor.noise_v_V,sensor.noise_i_A": [0.0, 0.05],
+}
+
+
+def _overrides(args: argparse.Namespace) -> list[str]:
+    ovs = list(getattr(args, "set", None) or [])
+    if getattr(args, "controller", None):
+        ovs.append(f'controller.kind="{args.controller}"')
+    return ovs
+
+
+def _load(path: str, overrides: list[str]):
+    return load_scenario(path, overrides)
+
+
+def _run_one(path: str, overrides: list[str]) -> dict:
+    from service.sim import run
+
+    return run(_load(path, overrides)).metrics
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from service.sim import run
+
+    scn = _load(args.scenario, _overrides(args))
+    t0 = time.perf_counter()
+    res = run(scn)
+    wall = time.perf_counter() - t0
+    if args.out:
+        from service.recorder import write_sim_mcap
+
+        write_sim_mcap(args.out, res, prefix=f"energyctl/{scn.name}")
+    m = dict(res.metrics)
+    m["wall_s"] = wall
+    m["violations"] = [v.__dict__ for v in res.violations[:20]]
+    if args.json:
+        print(json.dumps({"scenario": scn.name, "controller": scn.controller.kind, **m}))
+    else:
+        print(f"scenario {scn.name}: controller {scn.controller.kind} ({scn.controller.mapping} mapping), "
+              f"{scn.timing.control_rate_hz:g} Hz control, {scn.timing.delay_samples} samples delay, "
+              f"{scn.timing.duration_s:g} s simulated in {wall:.2f} s")
+        print(metrics_table([([scn.name, scn.controller.kind], res.metrics)], ["scenario", "controller"]))
+        for v in res.violations[:5]:
+            print(f"feasibility: {v.element} left [{v.lo:.4g}, {v.hi:.4g}] at t = {v.t:.4f} s (value {v.value:.4g})")
+        if args.out:
+            print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    kinds = _kinds(args.controllers)
+    jobs = [(path, [*(args.set or []), f'controller.kind="{k}"'], (Path(path).stem, k))
+            for path in args.scenarios for k in kinds]
+    for path, ovs, _ in jobs:  # validate everything before starting work
+        _load(path, ovs)
+    results = _parallel([(p, o) for p, o, _ in jobs], args.jobs)
+    rows = [([label[0], label[1]], m) for (_, _, label), m in zip(jobs, results, strict=True)]
+    if args.json:
+        print(json.dumps([{"scenario": r[0][0], "controller": r[0][1], **r[1]} for r in rows]))
+    else:
+        print(metrics_table(rows, ["scenario", "controller"]))
+    return 0
+
+
+def _kinds(text: str) -> list[str]:
+    kinds = [k.strip() for k in text.split(",") if k.strip()]
+    bad = [k for k in kinds if k not in CONTROLLERS]
+    if bad:
+        raise ScenarioError(f"--controllers: unknown {', '.join(bad)} (choose from {', '.join(CONTROLLERS)})")
+    return kinds
+
+
+def _worker(job: tuple[str, list[str]]) -> dict:
+    return _run_one(*job)
+
+
+def _parallel(jobs: list[tuple[str, list[str]]], n_jobs: int | None, progress: bool = False) -> list[dict]:
+    n = n_jobs or os.cpu_count() or 1
+    t0 = time.perf_counter()
+    if n == 1 or len(jobs) == 1:
+        out = []
+        for k, j in enumerate(jobs, 1):
+            out.append(_worker(j))
+            if progress:
+                _progress(k, len(jobs), t0)
+        return out
+    import multiprocessing as mp
+
+    with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(n) as pool:
+        out = []
+        for k, m in enumerate(pool.imap(_worker, jobs, chunksize=2), 1):
+            out.append(m)
+            if progress:
+                _progress(k, len(jobs), t0)
+    if progress:
+        sys.stderr.write("\n")
+    return out
+
+
+def _progress(k: int, n: int, t0: float) -> None:
+    el = time.perf_counter() - t0
+    eta = el / k * (n - k)
+    sys.stderr.write(f"\r{k}/{n} runs, {el:.0f} s elapsed, ~{eta:.0f} s left   ")
+    sys.stderr.flush()
+
+
+def _grid_from_args(args: argparse.Namespace) -> dict[str, list]:
+    grid: dict[str, list] = dict(ROBUSTNESS_GRID) if args.preset == "robustness" else {}
+    for g in args.grid or []:
+        key, _, vals = g.partition("=")
+        if not vals:
+            raise ScenarioError(f"--grid {g!r}: expected key=v1,v2,...")
+        grid[key.strip()] = [parse_override(f"x={v}")[1] for v in vals.split(",")]
+    if not grid:
+        raise ScenarioError("sweep: give --preset robustness or at least one --grid key=v1,v2")
+    return grid
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    grid = _grid_from_args(args)
+    kinds = _kinds(args.controllers)
+    keys = list(grid)
+    combos = list(itertools.product(*(grid[k] for k in keys)))
+    jobs, labels = [], []
+    for kind in kinds:
+        for combo in combos:
+            ovs = [*(args.set or []), f'controller.kind="{kind}"']
+            for key, val in zip(keys, combo, strict=True):
+                for sub in key.split(","):
+                    ovs.append(f"{sub}={json.dumps(val)}")
+            jobs.append((args.scenario, ovs))
+            labels.append((kind, combo))
+    _load(*jobs[0])
+    sys.stderr.write(f"sweep: {len(combos)} cases x {len(kinds)} controllers = {len(jobs)} runs on "
+                     f"{args.jobs or os.cpu_count()} processes\n")
+    t0 = time.perf_counter()
+    results = _parallel(jobs, args.jobs, progress=not args.quiet)
+    wall = time.perf_counter() - t0
+    rows = []
+    for kind in kinds:
+        ms = [m for (k, _), m in zip(labels, results, strict=True) if k == kind]
+        settles = [m["settle_s"] for m in ms if m["settle_s"] is not None]
+        holds = [m["hold_max_dev_pct"] for m in ms if m["hold_max_dev_pct"] is not None and not m["diverged"]]
+        rows.append([kind, str(len(ms)), str(sum(m["diverged"] for m in ms)),
+                     str(sum(m["settle_s"] is None for m in ms)),
+                     f"{max(settles) * 1e3:.1f}" if settles else "-",
+                     f"{sorted(settles)[len(settles) // 2] * 1e3:.1f}" if settles else "-",
+                     f"{max(holds):.2f}" if holds else "-",
+                     str(sum(m["feasibility_violations"] > 0 for m in ms))])
+    if args.csv:
+        with open(args.csv, "w") as f:
+            f.write(",".join(["controller", *keys, *results[0].keys()]) + "\n")
+            for (kind, combo), m in zip(labels, results, strict=True):
+                f.write(",".join([kind, *map(str, combo), *("" if v is None else str(v) for v in m.values())]) + "\n")
+    if args.json:
+        print(json.dumps({"wall_s": wall, "grid": grid, "runs": [
+            {"controller": k, **dict(zip(keys, c, strict=True)), **m}
+            for (k, c), m in zip(labels, results, strict=True)]}))
+        return 0
+    print(render(["controller", "runs", "diverged", "not settled", "worst settle ms", "median settle ms",
+                  "worst hold %", "runs w/ feas viol"], rows))
+    print(f"{len(jobs)} runs in {wall:.1f} s")
+    if args.rows:
+        print(metrics_table([([k, *map(str, c)], m) for (k, c), m in zip(labels, results, strict=True)],
+                            ["controller", *keys]))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from service.recorder import write_sim_mcap
+    from service.sim import run
+
+    scn = _load(str(EMBEDDED / "demo.toml"), list(args.set or []))
+    logs = Path(args.logs)
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    out = logs / f"demo-{stamp}.mcap"
+    print(f"energyctl {__version__} demo: {scn.description}")
+    t0 = time.perf_counter()
+    res = run(scn)
+    wall = time.perf_counter() - t0
+    write_sim_mcap(out, res, prefix="energyctl/demo")
+    m = res.metrics
+    print(metrics_table([([scn.name, scn.controller.kind], m)], ["scenario", "controller"]))
+    print(f"{scn.timing.duration_s:g} s simulated in {wall:.2f} s ({scn.timing.duration_s / wall:.2f}x real time); "
+          f"log: {out}")
+    ok = (not m["diverged"]) and m["settle_s"] is not None and m["settle_s"] <= 0.05 and m["ss_error"] < 0.8
+    print("regulated: v within +-2 % of v_ref" if ok else "NOT regulated")
+    return 0 if ok else 1
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from service.sim import run
+
+    if args.what == "sim":
+        path = args.scenario or str(EMBEDDED / "demo.toml")
+        scn = _load(path, [*(args.set or []), "timing.duration_s=1.0", "timing.plant_step_s=1e-5",
+                           "timing.control_rate_hz=10000.0"])
+        walls = []
+        for _ in range(args.repeat):
+            t0 = time.perf_counter()
+            run(scn)
+            walls.append(time.perf_counter() - t0)
+        best, worst = min(walls), max(walls)
+        res = {"bench": "sim", "scenario": scn.name, "simulated_s": 1.0, "control_hz": 10000, "plant_hz": 100000,
+               "wall_s_best": best, "wall_s_worst": worst, "realtime_ratio_best": 1.0 / best,
+               "realtime_ratio_worst": 1.0 / worst}
+    else:
+        res = _bench_core(args)
+    print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
+    return 0
+
+
+def _bench_core(args: argparse.Namespace) -> dict:
+    """Per-step cost of ControlCore.step on a recorded closed-loop input stream."""
+    import gc
+
+    from service.core import ControlCore
+    from service.sim import run
+    from service.types import Incoming, Sample
+
+    path = args.scenario or str(EMBEDDED / "demo.toml")
+    scn = _load(path, [*(args.set or []), "timing.duration_s=0.5"])
+    tr = run(scn).trace
+    core = ControlCore(scn.controller, scn.model, 1.0 / scn.timing.control_rate_hz, scn.timing.delay_samples)
+    n = len(tr["t"])
+    samples = [Sample(k, tr["t"][k], tr["i_meas"][k], tr["v_meas"][k], tr["u_meas"][k], tr["i_load_meas"][k])
+               for k in range(n)]
+    incs = [Incoming(-tr["P_l"][k], 0.0) for k in range(n)]
+    times = [0.0] * n
+    pc = time.perf_counter_ns
+    gc.freeze()
+    gc.disable()
+    try:
+        for k in range(n):
+            t0 = pc()
+            core.step(samples[k], incs[k])
+            times[k] = pc() - t0
+    finally:
+        gc.enable()
+        gc.unfreeze()
+    times.sort()
+    return {"bench": "core", "scenario": scn.name, "controller": scn.controller.kind,
+            "mapping": scn.controller.mapping, "delay_samples": scn.timing.delay_samples, "steps": n,
+            "mean_us": sum(times) / n / 1e3, "p50_us": times[n // 2] / 1e3,
+            "p99_us": times[int(n * 0.99)] / 1e3, "max_us": times[-1] / 1e3}
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    from schemas.messages import write_json_schemas
+
+    for p in write_json_schemas(args.out):
+        print(p)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="energyctl",
+        description="Energy-space controller for a power-electronic voltage source feeding a DC bus "
+                    "(Jaddivada & Ilic, distributed energy control). All quantities in SI units.")
+    p.add_argument("--version", action="version", version=f"energyctl {__version__}")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    def scen_opts(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--set", action="append", metavar="dotted.key=value",
+                        help="override a scenario field, e.g. --set timing.delay_samples=2 "
+                             "--set controller.K_per_s=800 (value parsed as TOML; repeatable)")
+
+    s = sub.add_parser("sim", help="run one scenario's closed loop offline and print its metrics",
+                       description="Run a TOML scenario's closed loop offline, as fast as the machine allows. "
+                                   "Metrics: settle_s = time of the last exit from +-2 %% of v_ref; ss_error = "
+                                   "mean |v - v_ref| over the last 10 %%; hold_max_dev_pct = max |v - v_ref| / "
+                                   "v_ref for t >= 50 ms; rms/max du/dt of the applied command; "
+                                   "rms_tracking_error = rms(y_z - y_ref) on the true state; "
+                                   "feasibility_violations = excursions of the outgoing interaction variable "
+                                   "from the window's incoming range; diverged = v left [0.5, 2] v_ref.")
+    s.add_argument("scenario", help="scenario TOML file (see scenarios/)")
+    scen_opts(s)
+    s.add_argument("--controller", choices=CONTROLLERS, help="override controller.kind")
+    s.add_argument("--out", metavar="FILE.mcap", help="write measurements, commands, estimates to MCAP")
+    s.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    s.set_defaults(func=cmd_sim)
+
+    c = sub.add_parser("compare", help="run scenarios under several controllers, one table")
+    c.add_argument("scenarios", nargs="+", metavar="SCENARIO")
+    c.add_argument("--controllers", default="fblc,smc,lqr,bm", help="comma list (default: %(default)s)")
+    scen_opts(c)
+    c.add_argument("--jobs", type=int, default=None, help="processes (default: all cores)")
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(func=cmd_compare)
+
+    w = sub.add_parser("sweep", help="run a grid of scenario overrides on all cores",
+                       description="Cartesian grid of overrides on a base scenario, for each controller. "
+                                   "--preset robustness is the issue's grid: rates {5,10,20} kHz x delays "
+                                   "{0..3} x i0 {0.5,1,15,30} A x load {0.3,1.2,2.4} kW x noise {0,0.05}.")
+    w.add_argument("scenario", nargs="?", default="scenarios/paper-constant-load.toml")
+    w.add_argument("--preset", choices=["robustness"], help="start from a named grid")
+    w.add_argument("--grid", action="append", metavar="key=v1,v2,...",
+                   help="a grid axis; 'k1,k2=v1,v2' sets both keys to each value (repeatable)")
+    w.add_argument("--controllers", default="fblc", help="comma list (default: %(default)s)")
+    scen_opts(w)
+    w.add_argument("--jobs", type=int, default=None, help="processes (default: all cores)")
+    w.add_argument("--rows", action="store_true", help="also print every run")
+    w.add_argument("--csv", metavar="FILE", help="write every run to a CSV file")
+    w.add_argument("--json", action="store_true")
+    w.add_argument("--quiet", action="store_true", help="no progress line on stderr")
+    w.set_defaults(func=cmd_sweep)
+
+    d = sub.add_parser("demo", help="the main job on an embedded default scenario (no external services)",
+                       description="Runs the embedded paper scenario (time-varying 1.2 kW load, noise, 3 samples "
+                                   "of delay, +-10 %% model error) offline, writes logs/demo-<timestamp>.mcap, "
+                                   "prints the metrics table; exit 0 only if v was regulated.")
+    d.add_argument("--logs", default="logs", help="directory for the MCAP log (default: %(default)s)")
+    scen_opts(d)
+    d.set_defaults(func=cmd_demo)
+
+    b = sub.add_parser("bench", help="benchmarks: 'sim' (real-time ratio), 'core' (per-step cost)")
+    b.add_argument("what", choices=["sim", "core"])
+    b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
+    scen_opts(b)
+    b.add_argument("--repeat", type=int, default=3)
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(func=cmd_bench)
+
+    g = sub.add_parser("schema", help="write JSON Schemas of the message and scenario models")
+    g.add_argument("--out", default="schemas/json")
+    g.set_defaults(func=cmd_schema)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ScenarioError as e:
+        print(f"energyctl: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("energyctl: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
