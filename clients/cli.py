@@ -249,7 +249,7 @@ def _bench_core(args: argparse.Namespace) -> dict:
 
     path = args.scenario or str(EMBEDDED / "demo.toml")
     scn = _load(path, [*(args.set or []), "timing.duration_s=0.5"])
-    tr = run(scn).trace
+    tr = {k: v.tolist() for k, v in run(scn).trace.items()}  # Python floats, as the daemon sees them
     core = ControlCore(scn.controller, scn.model, 1.0 / scn.timing.control_rate_hz, scn.timing.delay_samples)
     n = len(tr["t"])
     samples = [Sample(k, tr["t"][k], tr["i_meas"][k], tr["v_meas"][k], tr["u_meas"][k], tr["i_load_meas"][k])

@@ -166,14 +166,18 @@ def effective_gain(cfg: ControllerConfig, model: CircuitParams) -> float:
 class ControlCore:
     """Deterministic controller for one RLC source component. See the module docstring."""
 
-    def __init__(self, cfg: ControllerConfig, model: CircuitParams, period_s: float, loop_delay_samples: int = 0):
+    def __init__(self, cfg: ControllerConfig, model: CircuitParams, period_s: float,
+                 loop_delay_samples: int = 0):
         self.cfg = cfg
         self.model = model
         self.T = float(period_s)
-        self.d = cfg.delay_compensation_samples if cfg.delay_compensation_samples is not None else loop_delay_samples
+        dc = cfg.delay_compensation_samples
+        self.d = dc if dc is not None else loop_delay_samples
         self.n_pred = max(1, math.ceil(self.T / _PRED_STEP_S - 1e-9))
         self.estimator = EnergyEstimator(model.R_ohm, model.L_H, model.C_F, cfg.deriv_tau_s)
+        self._R, self._L, self._C = model.R_ohm, model.L_H, model.C_F
         self.out = Output()
+        self._cache()
         self.reset()
 
     def reset(self) -> None:
@@ -186,14 +190,26 @@ class ControlCore:
     def set_gains(self, cfg: ControllerConfig) -> None:
         """Swap gains and limits between steps (the caller validated cfg)."""
         self.cfg = cfg
+        self._cache()
+
+    def _cache(self) -> None:
+        c, lim = self.cfg, self.cfg.limits
+        self._kind = c.kind
+        self._continuous = c.mapping == "continuous"
+        self._gains = (c.v_ref_V, c.K_per_s, c.cancel_tangent_energy, c.smc_bound_W_per_s + c.K_per_s,
+                       c.smc_boundary_W, math.exp(-c.K_per_s * self.T))
+        self._lqr = (c.lqr_K1_ohm, c.lqr_K2)
+        self._bm = (c.bm_K1, c.bm_K2_s, c.bm_K3_S, c.bm_Pi_W)
+        self._lim = (lim.u_min_V, lim.u_max_V, lim.du_dt_max_V_per_s, lim.i_floor_A)
 
     def applied_rate(self) -> float:
         """du/dt acting on the plant now, as far as the controller knows (V/s)."""
         return self.pending[0] if self.d > 0 else self.r_prev
 
     def step(self, s: Sample, inc: Incoming) -> Output:
-        cfg, lim = self.cfg, self.cfg.limits
-        R, L, C = self.model.R_ohm, self.model.L_H, self.model.C_F
+        R, L, C = self._R, self._L, self._C
+        u_min, u_max, r_max, i_floor = self._lim
+        v_ref, K, cancel_Et, alpha, phi, decay = self._gains
         T, d = self.T, self.d
         out = self.out
         est = self.estimator.update(s.t, s.i, s.v, s.u, s.i_load, self.applied_rate())
@@ -206,67 +222,70 @@ class ControlCore:
         Pdot = -inc.P_r_in_dot  # the load's rate as announced by the neighbour
         i_p, v_p, u_p = s.i, s.v, s.u
         if d > 0:
+            n = self.n_pred
             for k, r_k in enumerate(self.pending):
-                i_p, v_p, u_p = predict(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, self.n_pred, R, L, C)
-                u_p = min(max(u_p, lim.u_min_V), lim.u_max_V)
+                i_p, v_p, u_p = predict(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, n, R, L, C)
+                if u_p > u_max:
+                    u_p = u_max
+                elif u_p < u_min:
+                    u_p = u_min
         P_app = P_meas + Pdot * (d + 0.5) * T  # load power over the coming period
         out.i_pred, out.v_pred, out.u_pred = i_p, v_p, u_p
 
         # --- energy-space output and reference at the sample (reported) and at t_{k+d} ---
-        v_ref = cfg.v_ref_V
-        out.y_z = R * s.i * s.i - s.u * s.i
-        out.y_ref = inc.P_r_in * v_ref / s.v
-        out.e = out.y_z - out.y_ref
+        y_z = R * s.i * s.i - s.u * s.i
+        y_ref = inc.P_r_in * v_ref / s.v
+        out.y_z, out.y_ref, out.e = y_z, y_ref, y_z - y_ref
         P_in_app = inc.P_r_in + inc.P_r_in_dot * d * T
-        kind = cfg.kind
-        r_max = lim.du_dt_max_V_per_s
-        r_lo = max(-r_max, (lim.u_min_V - u_p) / T)
-        r_hi = max(r_lo, min(r_max, (lim.u_max_V - u_p) / T))
+        kind = self._kind
         u_z = 0.0
 
         if kind == "fixed":
             r = 0.0
         elif kind == "lqr":
+            K1, K2 = self._lqr
             P_l = -inc.P_r_in
             i_ref = P_l / v_ref
             u_ref = v_ref + R * P_l / v_ref
-            u_des = u_ref - cfg.lqr_K1_ohm * (i_p - i_ref) - cfg.lqr_K2 * (v_p - v_ref)
+            u_des = u_ref - K1 * (i_p - i_ref) - K2 * (v_p - v_ref)
             r = (u_des - u_p) / T
         elif kind == "bm":
+            K1, K2, K3, Pi = self._bm
             dv = (i_p - P_app / v_p) / C
-            u_des = (R * i_p + v_ref - L * (cfg.bm_Pi_W / (v_p * v_p) + cfg.bm_K3_S) * dv
-                     - cfg.bm_K1 * (v_p - v_ref) - cfg.bm_K2_s * dv)
+            u_des = R * i_p + v_ref - L * (Pi / (v_p * v_p) + K3) * dv - K1 * (v_p - v_ref) - K2 * dv
             r = (u_des - u_p) / T
         else:
-            K = cfg.K_per_s
             y_p = R * i_p * i_p - u_p * i_p
             e_p = y_p - P_in_app * v_ref / v_p
             di = (u_p - R * i_p - v_p) / L
-            dv = (i_p - P_app / v_p) / C
-            four_Et = 2.0 * (L * di * di + C * dv * dv)
-            alpha = cfg.smc_bound_W_per_s + K
-            if cfg.mapping == "continuous":
+            if self._continuous:
+                dv = (i_p - P_app / v_p) / C
                 dy_ref = inc.P_r_in_dot * v_ref / v_p - P_in_app * v_ref * dv / (v_p * v_p)
                 if kind == "fblc":
                     u_z = -K * e_p + dy_ref - 2.0 * (R * i_p - u_p) * di
-                    if not cfg.cancel_tangent_energy:
-                        u_z -= four_Et
+                    if not cancel_Et:
+                        u_z -= 2.0 * (L * di * di + C * dv * dv)  # 4 E_t
                 else:
-                    phi = cfg.smc_boundary_W
-                    sat = max(-1.0, min(1.0, e_p / phi)) if phi > 0.0 else (1.0 if e_p > 0 else -1.0 if e_p < 0 else 0.0)
+                    if phi > 0.0:
+                        sat = max(-1.0, min(1.0, e_p / phi))
+                    else:
+                        sat = 1.0 if e_p > 0 else -1.0 if e_p < 0 else 0.0
                     u_z = -alpha * sat + dy_ref
-                i_f = max(i_p, lim.i_floor_A) if i_p >= 0.0 else min(i_p, -lim.i_floor_A)
+                i_f = max(i_p, i_floor) if i_p >= 0.0 else min(i_p, -i_floor)
                 r = (u_p * di - u_z) / i_f
             else:
+                r_lo = max(-r_max, (u_min - u_p) / T)
+                r_hi = max(r_lo, min(r_max, (u_max - u_p) / T))
                 r0 = min(max(self.r_prev, r_lo), r_hi)
                 i1, v1, u1, si = predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, self.n_pred, R, L, C)
                 if kind == "fblc":
-                    e1 = e_p * math.exp(-K * T)
-                    if not cfg.cancel_tangent_energy:
-                        e1 -= four_Et * T
+                    e1 = e_p * decay
+                    if not cancel_Et:
+                        dv = (i_p - P_app / v_p) / C
+                        e1 -= 2.0 * (L * di * di + C * dv * dv) * T  # 4 E_t T
                 else:
-                    phi = cfg.smc_boundary_W
-                    stepv = alpha * T * (max(-1.0, min(1.0, e_p / phi)) if phi > 0.0 else math.copysign(1.0, e_p))
+                    sat = max(-1.0, min(1.0, e_p / phi)) if phi > 0.0 else math.copysign(1.0, e_p)
+                    stepv = alpha * T * sat
                     e1 = 0.0 if abs(stepv) >= abs(e_p) else e_p - stepv
                 y_target = (inc.P_r_in + inc.P_r_in_dot * (d + 1) * T) * v_ref / v1 + e1
                 r = r0 + solve_rate_for_target(R, T, i1, u1, si, y_target)
@@ -275,7 +294,7 @@ class ControlCore:
         raw = r
         if not math.isfinite(r):
             r = 0.0
-        r = min(max(r, (lim.u_min_V - u_p) / T), (lim.u_max_V - u_p) / T)  # u stays in range ...
+        r = min(max(r, (u_min - u_p) / T), (u_max - u_p) / T)  # u stays in range ...
         r = min(max(r, -r_max), r_max)  # ... unless that would break the slew limit
         out.limited = r != raw
         out.du_dt_raw = raw

@@ -44,6 +44,45 @@ class EwLineFit:
         self.slope = [0.0] * n
         self.count = 0
 
+    def update3(self, t: float, y0: float, y1: float, y2: float) -> bool:
+        """update() for exactly three channels, unrolled (the estimator's hot path)."""
+        if self.t_last is None or self.n != 3:
+            return self.update(t, (y0, y1, y2))
+        dt = t - self.t_last
+        if not dt > 0.0:
+            return False
+        self.t_last = t
+        w = math.exp(-dt / self.tau)
+        S0, S1 = self.S0, self.S1
+        S2 = (self.S2 + 2.0 * dt * S1 + dt * dt * S0) * w
+        S1 = (S1 + dt * S0) * w
+        S0 = S0 * w + 1.0
+        self.S0, self.S1, self.S2 = S0, S1, S2
+        det = S0 * S2 - S1 * S1
+        Sy, Say, ref, val, slo = self.Sy, self.Say, self.ref, self.value, self.slope
+        r0, r1, r2 = ref
+        sy0 = Sy[0] * w + (y0 - r0)
+        sy1 = Sy[1] * w + (y1 - r1)
+        sy2 = Sy[2] * w + (y2 - r2)
+        sa0 = (Say[0] + dt * Sy[0]) * w
+        sa1 = (Say[1] + dt * Sy[1]) * w
+        sa2 = (Say[2] + dt * Sy[2]) * w
+        Sy[0], Sy[1], Sy[2] = sy0, sy1, sy2
+        Say[0], Say[1], Say[2] = sa0, sa1, sa2
+        if det > 1e-12 * S0 * S0 * (self.tau * self.tau):
+            b0 = (S0 * sa0 - S1 * sy0) / det
+            b1 = (S0 * sa1 - S1 * sy1) / det
+            b2 = (S0 * sa2 - S1 * sy2) / det
+            val[0] = r0 + (sy0 - b0 * S1) / S0
+            val[1] = r1 + (sy1 - b1 * S1) / S0
+            val[2] = r2 + (sy2 - b2 * S1) / S0
+            slo[0], slo[1], slo[2] = -b0, -b1, -b2
+        else:
+            val[0], val[1], val[2] = y0, y1, y2
+            slo[0] = slo[1] = slo[2] = 0.0
+        self.count += 1
+        return True
+
     def update(self, t: float, ys: tuple[float, ...] | list[float]) -> bool:
         """Add one sample at time t (s). Returns False (and ignores it) if t is not after the last."""
         n = self.n
@@ -108,7 +147,7 @@ class EnergyEstimator:
 
     def update(self, t: float, i: float, v: float, u: float, i2: float, du_dt: float) -> RLCEnergy | None:
         """Fold in one sample; du_dt (V/s) is the source rate being applied. None if t did not advance."""
-        if not self.fit.update(t, (i, v, i2)):
+        if not self.fit.update3(t, i, v, i2):
             return None
         fi, fv, fi2 = self.fit.value
         di, dv, di2 = self.fit.slope

@@ -69,56 +69,67 @@ class RLCPlant:
         return di, dv, du, di2
 
     def advance(self, r: float, T: float, n_sub: int) -> None:
-        """Integrate over T seconds with constant commanded rate r (V/s) in n_sub RK4 steps."""
+        """Integrate over T seconds with constant commanded rate r (V/s) in n_sub RK4 steps.
+
+        The load power and disturbance are evaluated at the period's two ends and taken linear in
+        between (a 13 Hz load over 100 us deviates from its chord by < 1e-5 relative).
+        """
         R, L, C, vmin = self.R, self.L, self.C, self.v_min
         umin, umax = self.u_min, self.u_max
-        load, dist = self.load.value, (self.dist.value if self.dist is not None else None)
         h = T / n_sub
         hh = 0.5 * h
         t, i, v, u = self.t, self.i, self.v, self.u
-        P0 = load(t)
-        m0 = dist(t) if dist else 0.0
-        for _ in range(n_sub):
-            t1 = t + h
-            P1 = load(t1)
-            Pm = 0.5 * (P0 + P1)
-            if dist:
-                m1 = dist(t1)
-                mm = 0.5 * (m0 + m1)
-            else:
-                m1 = mm = 0.0
+        Pa = self.load.value(t)
+        Pb = self.load.value(t + T)
+        dP = (Pb - Pa) / n_sub
+        if self.dist is not None:
+            ma = self.dist.value(t)
+            dm = (self.dist.value(t + T) - ma) / n_sub
+        else:
+            ma = dm = 0.0
+        u_end = u + r * T
+        clip = not (umin <= u <= umax and umin <= u_end <= umax)
+        vmin2 = vmin * vmin
+        for k in range(n_sub):
+            P0 = Pa + k * dP
+            P1 = P0 + dP
+            Pm = P0 + 0.5 * dP
+            m0 = ma + k * dm
+            mm = m0 + 0.5 * dm
+            m1 = m0 + dm
             # the source ramps at r and is clipped to its range (exact for u)
-            ua = u
-            um_ = min(max(u + r * hh, umin), umax)
-            ub = min(max(u + r * h, umin), umax)
+            if clip:
+                um_ = min(max(u + r * hh, umin), umax)
+                ub = min(max(u + r * h, umin), umax)
+            else:
+                um_ = u + r * hh
+                ub = u + r * h
             # k1
-            i2 = P0 / v if v >= vmin else P0 * v / (vmin * vmin)
-            ki1 = (ua + m0 - R * i - v) / L
+            i2 = P0 / v if v >= vmin else P0 * v / vmin2
+            ki1 = (u + m0 - R * i - v) / L
             kv1 = (i - i2) / C
             # k2
             ii = i + hh * ki1
             vv = v + hh * kv1
-            i2 = Pm / vv if vv >= vmin else Pm * vv / (vmin * vmin)
+            i2 = Pm / vv if vv >= vmin else Pm * vv / vmin2
             ki2 = (um_ + mm - R * ii - vv) / L
             kv2 = (ii - i2) / C
             # k3
             ii = i + hh * ki2
             vv = v + hh * kv2
-            i2 = Pm / vv if vv >= vmin else Pm * vv / (vmin * vmin)
+            i2 = Pm / vv if vv >= vmin else Pm * vv / vmin2
             ki3 = (um_ + mm - R * ii - vv) / L
             kv3 = (ii - i2) / C
             # k4
             ii = i + h * ki3
             vv = v + h * kv3
-            i2 = P1 / vv if vv >= vmin else P1 * vv / (vmin * vmin)
+            i2 = P1 / vv if vv >= vmin else P1 * vv / vmin2
             ki4 = (ub + m1 - R * ii - vv) / L
             kv4 = (ii - i2) / C
             i += h / 6.0 * (ki1 + 2.0 * ki2 + 2.0 * ki3 + ki4)
             v += h / 6.0 * (kv1 + 2.0 * kv2 + 2.0 * kv3 + kv4)
             u = ub
-            t = t1
-            P0, m0 = P1, m1
-        self.t, self.i, self.v, self.u = t, i, v, u
+        self.t, self.i, self.v, self.u = t + T, i, v, u
 
 
 class Sensor:
