@@ -1,0 +1,53 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from schemas.scenario import scenario_from_dict
+from service.energy import RLCEnergy
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENARIOS = ROOT / "scenarios"
+
+# an ideal setting: no noise, no delay, exact model
+IDEAL = {"timing": {"control_rate_hz": 10000.0, "plant_step_s": 1e-5, "duration_s": 0.1}}
+
+
+def scenario(**sections):
+    """Scenario from nested keyword sections on top of IDEAL, e.g. scenario(load={'value': 900.0})."""
+    data = {k: dict(v) for k, v in IDEAL.items()}
+    for k, v in sections.items():
+        if isinstance(v, dict) and isinstance(data.get(k), dict):
+            data[k].update(v)
+        else:
+            data[k] = v
+    return scenario_from_dict(data)
+
+
+def exact_energy_along(trace: dict, R: float, L: float, C: float, Pdot: np.ndarray | None = None):
+    """RLCEnergy quantities along a simulated trace, with exact derivatives from the circuit equations."""
+    n = len(trace["t"])
+    Pdot = np.zeros(n) if Pdot is None else Pdot
+    cols = {k: np.zeros(n) for k in RLCEnergy.__slots__}
+    cols["di"] = np.zeros(n)
+    cols["dv"] = np.zeros(n)
+    e = RLCEnergy()
+    for k in range(n):
+        i, v, u, i2 = trace["i"][k], trace["v"][k], trace["u"][k], trace["i_load"][k]
+        P = trace["P_l"][k]
+        r = trace["du_dt_applied"][k]
+        di = (u - R * i - v) / L
+        dv = (i - i2) / C
+        di2 = Pdot[k] / v - P * dv / (v * v)
+        e.update(R, L, C, i, v, u, i2, di, dv, r, di2)
+        for key in RLCEnergy.__slots__:
+            cols[key][k] = getattr(e, key)
+        cols["di"][k], cols["dv"][k] = di, dv
+    return cols
+
+
+@pytest.fixture
+def paper_files():
+    return sorted(SCENARIOS.glob("paper-*.toml"))
