@@ -29,6 +29,9 @@ load port (v, i_2)):
     P^{r,out}    = -v i_2 = -P_l                 (follows from the energy balance)
     Qdot^{r,out} = Qdot_l + 2 (i dv/dt - v di/dt)  (follows from KVL/KCL; see tests)
 
+The last two ("port forms") need no p and no second derivative, so an estimator working from
+measured, filtered derivatives gets them without the filter's lag on p; RLCEnergy gives both.
+
 The printed Eqn ControlDynRLC_eta writes 4E_t as 2L di/dt + 2C dv/dt (squares missing) and counts it
 twice; the expressions above are derived, and tests check them on simulated trajectories.
 """
@@ -97,7 +100,7 @@ class RLCEnergy:
     """
 
     __slots__ = ("E", "E_t", "D", "tau", "p", "pdot", "P_u", "Qdot_u", "P_l", "Qdot_l", "P_m",
-                 "y_z", "y_z_balance", "eta", "P_r_out", "Qdot_r_out")
+                 "y_z", "y_z_balance", "eta", "P_r_out", "Qdot_r_out", "P_r_out_port", "Qdot_r_out_port")
 
     def __init__(self) -> None:
         for k in self.__slots__:
@@ -126,6 +129,9 @@ class RLCEnergy:
         self.eta = 4.0 * E_t + 2.0 * (R * i - u - u_m) * di
         self.P_r_out = p + D - P_u - P_m
         self.Qdot_r_out = -pdot + 4.0 * E_t - Qdot_u - Qdot_m
+        # the same two rates from the load port alone (equal under the circuit equations; no p, no pdot)
+        self.P_r_out_port = -self.P_l
+        self.Qdot_r_out_port = self.Qdot_l + 2.0 * (i * dv - v * di)
         return self
 
 

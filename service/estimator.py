@@ -130,8 +130,11 @@ class EnergyEstimator:
     """Sample stream -> RLCEnergy quantities and the outgoing interaction variable integrals z_out.
 
     Uses the controller's own model parameters (R, L, C). The y_z from the energy balance
-    (``est.y_z_balance``) uses only measured p and P_l, not R. z_out = integral of
-    (P^{r,out}, Qdot^{r,out}) by the trapezoidal rule over the actual sample spacing.
+    (``est.y_z_balance``) uses only measured p and P_l, not R. The outgoing rates the component
+    reports and integrates (z_out, trapezoidal over the actual sample spacing) are the port forms
+    P^{r,out} = -v i_2 and Qdot^{r,out} = Qdot_l + 2 (i dv/dt - v di/dt): equal to the definition
+    under the circuit equations (tests/test_energy.py), but free of the derivative filter's lag on p.
+    ``est.P_r_out`` / ``est.Qdot_r_out`` keep the definition-based values for diagnostics.
     """
 
     def __init__(self, R: float, L: float, C: float, deriv_tau_s: float):
@@ -155,7 +158,7 @@ class EnergyEstimator:
         last = self._last
         if last is not None:
             h = t - last[0]
-            self.z_out[0] += 0.5 * h * (last[1] + est.P_r_out)
-            self.z_out[1] += 0.5 * h * (last[2] + est.Qdot_r_out)
-        self._last = (t, est.P_r_out, est.Qdot_r_out)
+            self.z_out[0] += 0.5 * h * (last[1] + est.P_r_out_port)
+            self.z_out[1] += 0.5 * h * (last[2] + est.Qdot_r_out_port)
+        self._last = (t, est.P_r_out_port, est.Qdot_r_out_port)
         return est

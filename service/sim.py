@@ -91,12 +91,13 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
             r_apply = out.du_dt
         est = out.est
         if t >= t_warm:
-            feas.update(t, est.P_r_out, est.Qdot_r_out)
+            feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
         um = plant.u_m(t)
         pi, pv, pu = plant.i, plant.v, plant.u
         row((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, out.du_dt, r_apply, out.u_z,
              R_true * pi * pi - (pu + um) * pi, -P_l * v_ref / pv, out.y_z, out.y_ref,
-             est.E, est.E_t, est.p, est.y_z_balance, est.eta, est.P_r_out, est.Qdot_r_out, out.z_out0, out.z_out1))
+             est.E, est.E_t, est.p, est.y_z_balance, est.eta, est.P_r_out_port, est.Qdot_r_out_port,
+             out.z_out0, out.z_out1))
         plant.advance(r_apply, T, n_sub)
         if not (v_lo < plant.v < v_hi) or not math.isfinite(plant.i) or abs(plant.i) > 1e4:
             diverged = True
