@@ -1,0 +1,71 @@
+"""The energyctl command line, run as a user would (in-process through main())."""
+
+from __future__ import annotations
+
+import json
+
+from conftest import SCENARIOS
+from mcap.reader import make_reader
+
+from clients.cli import main
+
+CONST = str(SCENARIOS / "paper-constant-load.toml")
+
+
+def test_sim_json_has_the_documented_metrics(capsys):
+    assert main(["sim", CONST, "--json", "--set", "timing.duration_s=0.05"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in ("settle_s", "v_min", "v_max", "ss_error", "rms_du_dt", "max_abs_du_dt", "rms_tracking_error",
+                "feasibility_violations", "diverged"):
+        assert key in out
+    assert out["diverged"] is False and out["controller"] == "fblc"
+
+
+def test_sim_writes_an_mcap_with_meas_and_cmd_channels(tmp_path, capsys):
+    out = tmp_path / "run.mcap"
+    assert main(["sim", CONST, "--controller", "lqr", "--set", "timing.duration_s=0.01", "--out", str(out)]) == 0
+    assert "lqr" in capsys.readouterr().out
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        topics = {c.topic: c for c in summary.channels.values()}
+        meas = [t for t in topics if t.endswith("meas")]
+        cmd = [t for t in topics if t.endswith("cmd")]
+        assert meas and cmd
+        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
+        msgs = {}
+        for _schema, channel, message in reader.iter_messages(topics=[meas[0], cmd[0]]):
+            msgs.setdefault(channel.topic, []).append(json.loads(message.data))
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert len(msgs[meas[0]]) == len(msgs[cmd[0]]) == 100
+    assert {"t", "i", "v", "u"} <= set(msgs[meas[0]][0]) and {"t", "du_dt"} <= set(msgs[cmd[0]][0])
+    assert json.loads(metadata["scenario"]["json"])["controller"]["kind"] == "lqr"
+
+
+def test_compare_prints_one_table(capsys):
+    assert main(["compare", CONST, "--controllers", "fblc,lqr", "--set", "timing.duration_s=0.02", "--jobs", "1"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 4 and "fblc" in lines[2] and "lqr" in lines[3]
+
+
+def test_sweep_runs_a_grid_on_several_processes(capsys, tmp_path):
+    csv = tmp_path / "s.csv"
+    assert main(["sweep", CONST, "--grid", "timing.delay_samples=0,3", "--grid", "load.value=300.0,2400.0",
+                 "--set", "timing.duration_s=0.02", "--jobs", "2", "--quiet", "--csv", str(csv)]) == 0
+    out = capsys.readouterr().out
+    assert "fblc" in out and "4 runs" in out
+    assert len(csv.read_text().splitlines()) == 5
+
+
+def test_bad_input_exits_2_with_the_field_named(capsys, tmp_path):
+    assert main(["sim", CONST, "--set", "plant.C_F=0"]) == 2
+    assert "plant.C_F" in capsys.readouterr().err
+    assert main(["compare", CONST, "--controllers", "fblc,pid"]) == 2
+    assert "pid" in capsys.readouterr().err
+    assert main(["sim", str(tmp_path / "nope.toml")]) == 2
+
+
+def test_demo_regulates_and_writes_its_log(tmp_path, capsys):
+    assert main(["demo", "--logs", str(tmp_path), "--set", "timing.duration_s=0.1"]) == 0
+    assert "regulated" in capsys.readouterr().out
+    assert len(list(tmp_path.glob("demo-*.mcap"))) == 1
