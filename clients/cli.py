@@ -177,10 +177,13 @@ def cmd_sweep(args: argparse.Namespace) -> int:
                      f"{max(holds):.2f}" if holds else "-",
                      str(sum(m["feasibility_violations"] > 0 for m in ms))])
     if args.csv:
-        with open(args.csv, "w") as f:
-            f.write(",".join(["controller", *keys, *results[0].keys()]) + "\n")
+        import csv
+
+        with open(args.csv, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["controller", *(k.replace(",", "+") for k in keys), *results[0].keys()])
             for (kind, combo), m in zip(labels, results, strict=True):
-                f.write(",".join([kind, *map(str, combo), *("" if v is None else str(v) for v in m.values())]) + "\n")
+                w.writerow([kind, *combo, *("" if v is None else v for v in m.values())])
     if args.json:
         print(json.dumps({"wall_s": wall, "grid": grid, "runs": [
             {"controller": k, **dict(zip(keys, c, strict=True)), **m}

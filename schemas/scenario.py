@@ -142,6 +142,12 @@ class ControllerConfig(Strict):
     v_ref_V: Pos = 80.0
     K_per_s: Pos = Field(default=2000.0, description="energy-space gain K (1/s)")
     mapping: Literal["exact", "continuous"] = "exact"
+    regulation: Literal["paper", "energy"] = Field(
+        default="paper",
+        description="y_ref: 'paper' P^{r,in} v_ref / v (Eqn OutputRefRLCReg); 'energy' P^{r,in} + "
+        "K_E C (v^2 - v_ref^2) / 2, so the stored energy converges at rate K_E whatever the load",
+    )
+    K_E_per_s: Pos = Field(default=100.0, description="energy regulation rate for regulation='energy' (1/s)")
     cancel_tangent_energy: bool = Field(
         default=True,
         description="True: u_z cancels eta - 4E_t so e decays at exactly K; False: paper's general form "

@@ -9,6 +9,7 @@ Laws (paper Sec. "Interactive component-level control", RLC instance; derivation
 
     y_z      = R i^2 - u i                                   (W)
     y_ref    = P^{r,in} v_ref / v                            (Eqn OutputRefRLCReg, W)
+               [regulation="energy": P^{r,in} + K_E C (v^2 - v_ref^2)/2; then dE/dt -> -K_E (E - E_ref)]
     dy_ref/dt= dP^{r,in}/dt v_ref / v - P^{r,in} v_ref (dv/dt) / v^2
     dy_z/dt  = 2 (R i - u) di/dt + u_z,   u_z = Qdot^u = u di/dt - i du/dt
     FBLC     u_z = -K e + dy_ref/dt - 2 (R i - u) di/dt      (exact cancellation: de/dt = -K e)
@@ -138,6 +139,14 @@ def solve_rate_for_target(R: float, T: float, i1: float, u1: float, si: float, y
     return c / q if q != 0.0 else 0.0
 
 
+def y_reference(P_in: float, v: float, v_ref: float, k_e_half_C: float) -> float:
+    """y_ref (W). k_e_half_C = 0: the paper's P^{r,in} v_ref / v (Eqn OutputRefRLCReg); otherwise
+    P^{r,in} + K_E C (v^2 - v_ref^2) / 2, with k_e_half_C = K_E C / 2 (W/V^2)."""
+    if k_e_half_C == 0.0:
+        return P_in * v_ref / v
+    return P_in + k_e_half_C * (v * v - v_ref * v_ref)
+
+
 class Output:
     """What one step returns (reused each step; copy what you keep)."""
 
@@ -201,6 +210,11 @@ class ControlCore:
         self._lqr = (c.lqr_K1_ohm, c.lqr_K2)
         self._bm = (c.bm_K1, c.bm_K2_s, c.bm_K3_S, c.bm_Pi_W)
         self._lim = (lim.u_min_V, lim.u_max_V, lim.du_dt_max_V_per_s, lim.i_floor_A)
+        self._keC = 0.5 * c.K_E_per_s * self._C if c.regulation == "energy" else 0.0
+
+    def y_ref_of(self, P_in: float, v: float) -> float:
+        """This controller's reference map y_ref(P^{r,in}, v) (W)."""
+        return y_reference(P_in, v, self.cfg.v_ref_V, self._keC)
 
     def applied_rate(self) -> float:
         """du/dt acting on the plant now, as far as the controller knows (V/s)."""
@@ -234,7 +248,8 @@ class ControlCore:
 
         # --- energy-space output and reference at the sample (reported) and at t_{k+d} ---
         y_z = R * s.i * s.i - s.u * s.i
-        y_ref = inc.P_r_in * v_ref / s.v
+        keC = self._keC
+        y_ref = y_reference(inc.P_r_in, s.v, v_ref, keC)
         out.y_z, out.y_ref, out.e = y_z, y_ref, y_z - y_ref
         P_in_app = inc.P_r_in + inc.P_r_in_dot * d * T
         kind = self._kind
@@ -256,11 +271,14 @@ class ControlCore:
             r = (u_des - u_p) / T
         else:
             y_p = R * i_p * i_p - u_p * i_p
-            e_p = y_p - P_in_app * v_ref / v_p
+            e_p = y_p - y_reference(P_in_app, v_p, v_ref, keC)
             di = (u_p - R * i_p - v_p) / L
             if self._continuous:
                 dv = (i_p - P_app / v_p) / C
-                dy_ref = inc.P_r_in_dot * v_ref / v_p - P_in_app * v_ref * dv / (v_p * v_p)
+                if keC == 0.0:
+                    dy_ref = inc.P_r_in_dot * v_ref / v_p - P_in_app * v_ref * dv / (v_p * v_p)
+                else:
+                    dy_ref = inc.P_r_in_dot + 2.0 * keC * v_p * dv
                 if kind == "fblc":
                     u_z = -K * e_p + dy_ref - 2.0 * (R * i_p - u_p) * di
                     if not cancel_Et:
@@ -287,7 +305,7 @@ class ControlCore:
                     sat = max(-1.0, min(1.0, e_p / phi)) if phi > 0.0 else math.copysign(1.0, e_p)
                     stepv = alpha * T * sat
                     e1 = 0.0 if abs(stepv) >= abs(e_p) else e_p - stepv
-                y_target = (inc.P_r_in + inc.P_r_in_dot * (d + 1) * T) * v_ref / v1 + e1
+                y_target = y_reference(inc.P_r_in + inc.P_r_in_dot * (d + 1) * T, v1, v_ref, keC) + e1
                 r = r0 + solve_rate_for_target(R, T, i1, u1, si, y_target)
                 u_z = u_p * di - i_p * r  # the Qdot^u this command implies at t_{k+d}
 

@@ -70,6 +70,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
                                          scn.feasibility.literal_paper_range))
 
     t_warm = 5.0 * scn.controller.deriv_tau_s  # derivative estimates need ~5 tau of history
+    y_ref_of = core.y_ref_of  # the controller's own reference map, evaluated on the true state
     rows: list[tuple] = []
     row = rows.append
     R_true, v_ref = scn.plant.R_ohm, scn.controller.v_ref_V
@@ -95,7 +96,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
         um = plant.u_m(t)
         pi, pv, pu = plant.i, plant.v, plant.u
         row((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, out.du_dt, r_apply, out.u_z,
-             R_true * pi * pi - (pu + um) * pi, -P_l * v_ref / pv, out.y_z, out.y_ref,
+             R_true * pi * pi - (pu + um) * pi, y_ref_of(-P_l, pv), out.y_z, out.y_ref,
              est.E, est.E_t, est.p, est.y_z_balance, est.eta, est.P_r_out_port, est.Qdot_r_out_port,
              out.z_out0, out.z_out1))
         plant.advance(r_apply, T, n_sub)

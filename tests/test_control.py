@@ -201,3 +201,14 @@ def test_core_replays_a_run_bit_for_bit():
     assert P_dot  # (rates came from the profile, as in the run)
     again = run(scn).trace["du_dt"].tolist()
     assert again == tr["du_dt"]
+
+
+def test_energy_regulation_removes_the_slow_zero_dynamics_of_the_paper_map():
+    """30 A into a 300 W load: with y_ref = P v_ref / v the stored energy relaxes with C v^2 / P = 145 ms;
+    with y_ref = P + K_E C (v^2 - v_ref^2) / 2 it relaxes at K_E whatever the load."""
+    base = ["plant.initial.i_A=30.0", "load.value=300.0", "timing.duration_s=0.3"]
+    path = SCENARIOS / "paper-constant-load.toml"
+    paper = run(load_scenario(path, base)).metrics
+    energy = run(load_scenario(path, [*base, 'controller.regulation="energy"'])).metrics
+    assert paper["settle_s"] > 0.1
+    assert energy["settle_s"] < 0.03 and not energy["diverged"]
