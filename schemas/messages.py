@@ -32,6 +32,26 @@ class Command(Msg):
     limited: bool = Field(default=False, description="the command was clipped by actuator limits")
 
 
+class Interaction(Msg):
+    """A component's outgoing interaction variable and its next-window forecast (topic ``.../z``).
+
+    A neighbour forms its incoming variable as P^{r,in} = -sum_j P_j^{r,out} (paper Eqn PsiMap).
+    """
+
+    seq: int = Field(ge=0)
+    t: float = Field(description="time the rates refer to, s")
+    P_r_out: float = Field(description="outgoing instantaneous power P^{r,out}, W")
+    P_r_out_dot: float = Field(description="its rate dP^{r,out}/dt, W/s")
+    Qdot_r_out: float = Field(description="outgoing reactive power rate Qdot^{r,out}, W/s")
+    z_out0: float = Field(description="integral of P^{r,out}, J")
+    z_out1: float = Field(description="integral of Qdot^{r,out}, W")
+    window: int = Field(ge=0, description="index k of the forecast window [k T_s, (k+1) T_s)")
+    P_min: float = Field(description="forecast range of P^{r,out} over the window, W")
+    P_max: float = Field(description="W")
+    P_dot_min: float = Field(description="forecast range of dP^{r,out}/dt over the window, W/s")
+    P_dot_max: float = Field(description="W/s")
+
+
 class Estimate(Msg):
     """Estimator internals and energy-space signals (topic ``.../est``)."""
 
@@ -64,6 +84,7 @@ MESSAGE_MODELS: dict[str, type[Msg]] = {
     "energyctl.Measurement": Measurement,
     "energyctl.Command": Command,
     "energyctl.Estimate": Estimate,
+    "energyctl.Interaction": Interaction,
     "energyctl.Plant": Plant,
 }
 

@@ -51,24 +51,34 @@ class McapFile:
 
 def write_sim_mcap(path: str | Path, result, prefix: str = "energyctl/sim") -> Path:
     """Write a SimResult: channels <prefix>/meas, /cmd, /est, /plant and a ``scenario`` metadata record."""
-    tr = result.trace
+    return write_trace_mcap(path, result.trace, {"scenario": {"json": result.scenario.model_dump_json()},
+                                                 "metrics": {"json": json.dumps(result.metrics)}}, prefix)
+
+
+def write_trace_mcap(path: str | Path, tr: dict, metadata: dict[str, dict[str, str]], prefix: str) -> Path:
+    """A closed-loop trace (service.sim.TRACE_FIELDS; the estimator columns are optional) as MCAP:
+    <prefix>/meas, /cmd, /plant and, when present, /est; one metadata record per ``metadata`` entry."""
     f = McapFile(path)
-    f.metadata("scenario", {"json": result.scenario.model_dump_json(), "version": __version__})
-    f.metadata("metrics", {"json": json.dumps(result.metrics)})
+    for name, data in metadata.items():
+        f.metadata(name, {**data, "version": __version__})
+    has_est = "E" in tr
     for topic, schema in (("meas", "energyctl.Measurement"), ("cmd", "energyctl.Command"),
                           ("est", "energyctl.Estimate"), ("plant", "energyctl.Plant")):
-        f.channel(f"{prefix}/{topic}", schema)
+        if topic != "est" or has_est:
+            f.channel(f"{prefix}/{topic}", schema)
     cols = {k: v.tolist() for k, v in tr.items()}
     est_keys = ("E", "p", "E_t", "y_z", "y_z_balance", "y_ref", "eta", "u_z", "P_r_out", "Qdot_r_out",
                 "z_out0", "z_out1")
     for k, t in enumerate(cols["t"]):
         f.add(f"{prefix}/meas", t, {"seq": k, "t": t, "i": cols["i_meas"][k], "v": cols["v_meas"][k],
                                     "u": cols["u_meas"][k], "i_load": cols["i_load_meas"][k]})
-        f.add(f"{prefix}/cmd", t, {"seq": k, "t": t, "du_dt": cols["du_dt"][k], "limited": False})
-        est = {"t": t}
-        for key in est_keys:
-            est[key] = cols[key][k]
-        f.add(f"{prefix}/est", t, est)
+        if cols["du_dt"][k] == cols["du_dt"][k]:  # NaN: no command answered this sample
+            f.add(f"{prefix}/cmd", t, {"seq": k, "t": t, "du_dt": cols["du_dt"][k], "limited": False})
+        if has_est:
+            est = {"t": t}
+            for key in est_keys:
+                est[key] = cols[key][k]
+            f.add(f"{prefix}/est", t, est)
         f.add(f"{prefix}/plant", t, {"t": t, "i": cols["i"][k], "v": cols["v"][k], "u": cols["u"][k],
                                      "P_l": cols["P_l"][k]})
     f.close()

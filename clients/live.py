@@ -1,0 +1,232 @@
+"""Live processes: energyctl run / plant / load, and the loopback demo that starts all three."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from schemas.component import ComponentConfig, LoadPeerConfig, PlantPeerConfig, config_from_dict
+from schemas.scenario import Scenario
+
+
+def install_stop_handlers(stop: threading.Event) -> None:
+    def handler(signum, frame):  # noqa: ARG001
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def run_daemon(cfg: ComponentConfig, stats_out: str | None = None) -> int:
+    from service.daemon import Daemon
+
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    d = Daemon(cfg)
+    d.open()
+    loop = threading.Thread(target=d.run_loop, name="loop", daemon=True)
+    loop.start()
+    print(f"energyctl run: {cfg.id} active, {cfg.loop.rate_hz:g} Hz {cfg.loop.trigger} trigger "
+          f"({'lockstep' if cfg.loop.lockstep else 'free-running'}), neighbours {cfg.neighbours or 'none'}",
+          file=sys.stderr, flush=True)
+    while not stop.is_set() and loop.is_alive():
+        stop.wait(0.05)
+    d.stop()
+    loop.join(timeout=1.0)
+    d.close()
+    status = d.status()
+    if stats_out:
+        Path(stats_out).write_text(json.dumps(status))
+    print(json.dumps({"id": cfg.id, "loop": status["loop"], "rejected": status["rejected"]}), flush=True)
+    return 0
+
+
+def run_plant_cmd(cfg: PlantPeerConfig, json_out: bool) -> int:
+    from .peers import run_plant
+
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    try:
+        res = run_plant(cfg, stop)
+    except RuntimeError as e:
+        print(f"energyctl plant: {e}", file=sys.stderr)
+        return 1
+    res.pop("trace")
+    print(json.dumps(res) if json_out else _plant_text(res), flush=True)
+    return 0
+
+
+def _plant_text(res: dict) -> str:
+    from .table import metrics_table
+
+    lines = [metrics_table([(["plant", res["pacing"]], res["metrics"])], ["", "pacing"])]
+    lines.append("counters: " + ", ".join(f"{k} {v}" for k, v in res["counters"].items()))
+    if "latency_us" in res:
+        lat = res["latency_us"]
+        lines.append(f"measurement->command latency: p50 {lat['p50']:.0f} us, p99 {lat['p99']:.0f} us, "
+                     f"max {lat['max']:.0f} us")
+    return "\n".join(lines)
+
+
+def run_load_cmd(cfg: LoadPeerConfig) -> int:
+    from .peers import run_load
+
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    res = run_load(cfg, stop)
+    print(json.dumps(res), flush=True)
+    return 0
+
+
+def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz: float | None = None,
+                          controller_delay: int | None = None, out: str | None = None,
+                          duration_s: float | None = None) -> tuple[dict, dict, dict]:
+    """Component, plant and load configs (as dicts) for one scenario on one loopback endpoint.
+
+    The controller listens; plant and load connect to it. The controller ticks on each measurement (the
+    plant's sampling is the time base, as on a HIL rig). Lockstep: the plant adds the scenario's loop
+    delay and the controller compensates exactly that, as in ``energyctl sim``. Realtime: the plant
+    applies each command at the sampling instant after it arrives (one sample of delay while the round
+    trip is shorter than a period); the controller compensates ``controller_delay`` samples (default 1).
+    """
+    tm = scn.timing
+    rate = rate_hz or tm.control_rate_hz
+    zl = {"mode": "peer", "listen": [endpoint]}
+    zc = {"mode": "peer", "connect": [endpoint]}
+    comp = {"id": "source", "zenoh": zl, "model": scn.model.model_dump(), "controller": scn.controller.model_dump(),
+            "neighbours": ["load"], "plant_id": "source",
+            "delay_samples": tm.delay_samples if lockstep else (1 if controller_delay is None else controller_delay),
+            "loop": {"rate_hz": rate, "trigger": "sample", "lockstep": lockstep,
+                     "wait": "block" if lockstep else "spin"},
+            "forecast_window_s": scn.feasibility.window_s, "interaction_rate_hz": 100.0}
+    comp["controller"]["delay_compensation_samples"] = None
+    plant = {"id": "plant", "controller_id": "source", "wait_for": ["load"], "zenoh": zc,
+             "plant": scn.plant.model_dump(),
+             "load": scn.load.model_dump(), "sensor": scn.sensor.model_dump(), "sample_rate_hz": rate,
+             "plant_step_s": tm.plant_step_s, "delay_samples": tm.delay_samples if lockstep else 0,
+             "pacing": "lockstep" if lockstep else "realtime", "duration_s": duration_s or tm.duration_s,
+             "seed": scn.seed, "v_ref_V": scn.controller.v_ref_V, "out": out, "base_dir": scn.base_dir,
+             "realtime_apply_delay_samples": max(1, comp["delay_samples"])}
+    if scn.disturbance is not None:
+        plant["disturbance"] = scn.disturbance.model_dump()
+    load = {"id": "load", "zenoh": zc, "load": scn.load.model_dump(), "plant_id": "source",
+            "pacing": "lockstep" if lockstep else "realtime", "rate_hz": 200.0,
+            "window_s": scn.feasibility.window_s, "forecast_margin": scn.feasibility.forecast_margin,
+            "base_dir": scn.base_dir}
+    # validate here so a bad scenario fails before any process starts
+    config_from_dict(ComponentConfig, comp)
+    config_from_dict(PlantPeerConfig, plant)
+    config_from_dict(LoadPeerConfig, load)
+    return comp, plant, load
+
+
+def _toml(d: dict, prefix: str = "") -> str:
+    """Minimal TOML writer for our config dicts (tables, scalars, lists of scalars/lists/tables)."""
+    scal, tabs = [], []
+    for k, v in d.items():
+        if v is None:
+            continue
+        if isinstance(v, dict):
+            tabs.append((k, v))
+        else:
+            scal.append(f"{k} = {_tv(v)}")
+    out = ([f"[{prefix}]"] if prefix and scal else []) + scal
+    for k, v in tabs:
+        out.append(_toml(v, f"{prefix}.{k}" if prefix else k))
+    return "\n".join(out) + "\n"
+
+
+def _tv(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_tv(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_tv(x)}" for k, x in v.items() if x is not None) + "}"
+    raise TypeError(type(v))
+
+
+class Processes:
+    """Child processes that are stopped (SIGTERM, then SIGKILL) whatever happens."""
+
+    def __init__(self):
+        self.procs: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, args: list[str], **kw) -> subprocess.Popen:
+        p = subprocess.Popen([sys.executable, "-m", "clients.cli", *args], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, **kw)
+        self.procs.append((name, p))
+        return p
+
+    def stop_all(self, timeout_s: float = 3.0) -> dict[str, tuple[int, str, str]]:
+        for _, p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        out = {}
+        for name, p in self.procs:
+            try:
+                so, se = p.communicate(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                so, se = p.communicate()
+            out[name] = (p.returncode, so, se)
+        return out
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop_all()
+
+
+def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | None, duration_s: float | None,
+             controller_delay: int | None = None, workdir: str | None = None, timeout_s: float = 300.0) -> dict:
+    """Start controller, load and plant on a free loopback port; wait for the plant; stop the rest."""
+    from service.bus import free_tcp_port
+
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    comp, plant, load = configs_from_scenario(scn, ep, lockstep, rate_hz, controller_delay, out, duration_s)
+    tmp = Path(workdir or tempfile.mkdtemp(prefix="energyctl-"))
+    paths = {}
+    for name, d in (("component", comp), ("plant", plant), ("load", load)):
+        paths[name] = tmp / f"{name}.toml"
+        paths[name].write_text(_toml(d))
+    stats_path = tmp / "daemon-status.json"
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    with Processes() as procs:
+        procs.start("daemon", ["run", "--config", str(paths["component"]), "--stats-out", str(stats_path)], env=env)
+        procs.start("load", ["load", "--config", str(paths["load"])], env=env)
+        p = procs.start("plant", ["plant", "--config", str(paths["plant"]), "--json"], env=env)
+        try:
+            so, se = p.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"plant did not finish within {timeout_s:g} s") from None
+        results = procs.stop_all()
+    if p.returncode != 0:
+        raise RuntimeError(f"plant failed ({p.returncode}): {se.strip()[-800:]}")
+    res = json.loads(so.strip().splitlines()[-1])
+    res["daemon"] = json.loads(stats_path.read_text()) if stats_path.exists() else {
+        "error": results.get("daemon", (None, "", ""))[2][-800:]}
+    res["endpoint"] = ep
+    return res
+
+
+def wait_until(pred, timeout_s: float, every_s: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(every_s)
+    return pred()

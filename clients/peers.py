@@ -1,0 +1,252 @@
+"""Hardware-in-the-loop plant and neighbour load as Zenoh peers (energyctl plant / energyctl load)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+import time
+from array import array
+from collections import deque
+from pathlib import Path
+from queue import Empty
+
+import numpy as np
+
+from schemas.codec import CMD, MEAS, DecodeError, Z
+from schemas.component import LoadPeerConfig, PlantPeerConfig
+from service.bus import key, open_session, publisher, queued
+from service.plant import RLCPlant, Sensor, load_current
+from service.profiles import Profile
+from service.sim import compute_metrics, substeps
+
+PLANT_TRACE = ("t", "i", "v", "u", "i_load", "P_l", "i_meas", "v_meas", "u_meas", "i_load_meas", "du_dt",
+               "du_dt_applied", "y_z_true", "y_ref_true")
+
+
+def wait_alive(session, key_expr: str, timeout_s: float, stop: threading.Event) -> bool:
+    """Block until a liveliness token matching key_expr exists (or timeout / stop)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not stop.is_set():
+        for r in session.liveliness().get(key_expr, timeout=0.5):
+            if r.ok is not None:
+                return True
+        stop.wait(0.05)
+    return False
+
+
+def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> dict:
+    """Run the plant for cfg.duration_s; returns metrics, latency and counters (and writes cfg.out)."""
+    load = Profile(cfg.load, cfg.base_dir)
+    dist = Profile(cfg.disturbance, cfg.base_dir) if cfg.disturbance is not None else None
+    plant = RLCPlant(cfg.plant, load, dist)
+    sensor = Sensor(cfg.sensor, cfg.seed)
+    T = 1.0 / cfg.sample_rate_hz
+    n_sub = substeps(T, cfg.plant_step_s)
+    N = int(round(cfg.duration_s / T))
+    session = open_session(cfg.zenoh)
+    try:
+        pub = publisher(session, key(cfg.prefix, cfg.controller_id, "meas"))
+        sub, cmd_q = queued(session, key(cfg.prefix, cfg.controller_id, "cmd"))
+        for peer in [cfg.controller_id, *cfg.wait_for]:
+            if not wait_alive(session, key(cfg.prefix, peer, "alive"), 15.0, stop):
+                raise RuntimeError(f"{peer!r} not alive on the bus within 15 s")
+        if cfg.start_delay_s:
+            stop.wait(cfg.start_delay_s)
+        rows: list[tuple] = []
+        # missed: samples whose command never arrived; late: arrived after its sampling instant (dropped);
+        # stale_periods: periods with no applicable command (u held)
+        counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "late": 0, "stale_periods": 0,
+                    "rejected": 0}
+        send_ns = array("q", bytes(8 * N))
+        lat_ns = array("q")
+        delay: deque[float] = deque([0.0] * cfg.delay_samples)
+        r_latest = 0.0
+        now_ns = time.monotonic_ns
+        lockstep = cfg.pacing == "lockstep"
+        timeout_ns = int(cfg.lockstep_timeout_s * 1e9)
+        period_ns = int(round(T * 1e9))
+        next_ns = now_ns() + period_ns
+        d_rt = cfg.realtime_apply_delay_samples
+        inbox: dict[int, float] = {}  # realtime: commands that arrived, by the seq they answer
+
+        def take(item) -> tuple | None:
+            t_rx, payload = item
+            try:
+                c = CMD.decode(payload)
+            except DecodeError:
+                counters["rejected"] += 1
+                return None
+            if 0 <= c[0] < N and send_ns[c[0]]:
+                lat_ns.append(t_rx - send_ns[c[0]])
+                counters["commands"] += 1
+                return c
+            return None
+
+        def poll_until(deadline_ns: int) -> None:
+            """Wait for the next sampling instant, collecting commands (timestamped on arrival)."""
+            while True:
+                left = deadline_ns - now_ns()
+                if left <= 0:
+                    return
+                try:
+                    item = cmd_q.get(timeout=max(0.0, (left - 60_000) * 1e-9)) if left > 60_000 else cmd_q.get_nowait()
+                except Empty:
+                    if left <= 60_000:
+                        while now_ns() < deadline_ns:  # spin the last 60 us
+                            pass
+                        return
+                    continue
+                c = take(item)
+                if c is not None:
+                    inbox[c[0]] = c[2]
+
+        for k in range(N):
+            if stop.is_set():
+                break
+            if not lockstep:  # wall-clock pacing against absolute time
+                poll_until(next_ns)
+                next_ns += period_ns
+            t = plant.t
+            P_l = load.value(t)
+            i2 = load_current(P_l, plant.v, plant.v_min)
+            s = sensor.measure(k, t, plant.i, plant.v, plant.u, i2)
+            send_ns[k] = now_ns()
+            pub.put(MEAS.encode(k, t, s.i, s.v, s.u, s.i_load))
+            counters["samples"] += 1
+            du_for_k = math.nan
+            if lockstep:
+                deadline = now_ns() + timeout_ns
+                while True:
+                    try:
+                        item = cmd_q.get(timeout=max(1e-6, (deadline - now_ns()) * 1e-9))
+                    except Empty:
+                        counters["timeouts"] += 1
+                        r_latest = 0.0  # no answer: hold the source voltage
+                        break
+                    c = take(item)
+                    if c is not None and c[0] == k:
+                        r_latest = du_for_k = c[2]
+                        break
+            else:
+                # fixed schedule, as a digital modulator: the command answering sample k - d acts over this
+                # period; one that has not arrived by now is too late (dropped when it comes) and the
+                # source holds its voltage (du/dt = 0) rather than keep ramping
+                r = inbox.pop(k - d_rt, None)
+                for old in [q for q in inbox if q < k - d_rt]:
+                    del inbox[old]
+                    counters["late"] += 1
+                if r is None:
+                    r_latest = 0.0
+                    counters["stale_periods"] += 1
+                else:
+                    r_latest = du_for_k = r
+            if cfg.delay_samples:
+                delay.append(r_latest)
+                r_apply = delay.popleft()
+            else:
+                r_apply = r_latest
+            pi, pv, pu = plant.i, plant.v, plant.u
+            um = plant.u_m(t)
+            rows.append((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, du_for_k, r_apply,
+                         cfg.plant.R_ohm * pi * pi - (pu + um) * pi, -P_l * cfg.v_ref_V / pv))
+            plant.advance(r_apply, T, n_sub)
+    finally:
+        session.close()
+    cols = np.asarray(rows, dtype=float).reshape(len(rows), len(PLANT_TRACE)).T
+    trace = {f: cols[j].copy() for j, f in enumerate(PLANT_TRACE)}
+    diverged = bool(len(trace["v"]) and not (0.5 * cfg.v_ref_V < trace["v"].min()
+                                              and trace["v"].max() < 2 * cfg.v_ref_V))
+    metrics = compute_metrics(trace, cfg.v_ref_V, cfg.duration_s, diverged, 0)
+    counters["missed"] = counters["samples"] - counters["commands"]
+    res = {"metrics": metrics, "counters": counters, "pacing": cfg.pacing, "sample_rate_hz": cfg.sample_rate_hz}
+    if lat_ns:
+        lat = sorted(lat_ns)
+        q = len(lat)
+        res["latency_us"] = {"p50": lat[q // 2] / 1e3, "p99": lat[min(q - 1, int(q * 0.99))] / 1e3,
+                             "max": lat[-1] / 1e3, "n": q}
+        # settled regulation: within +-2 % after 50 ms
+        late = trace["t"] >= 0.05
+        dev = np.abs(trace["v"][late] - cfg.v_ref_V) / cfg.v_ref_V
+        res["max_dev_after_50ms_pct"] = float(dev.max() * 100) if late.any() else None
+    if cfg.out:
+        out = Path(cfg.out)
+        from service.recorder import write_trace_mcap
+
+        write_trace_mcap(out, trace, {"plant_config": {"json": cfg.model_dump_json()},
+                                      "metrics": {"json": json.dumps(res)}}, f"{cfg.prefix}/{cfg.controller_id}")
+    res["trace"] = trace
+    return res
+
+
+def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
+    """Publish the load's outgoing interaction variable until stop or cfg.duration_s.
+
+    lockstep: one message per plant sample, stamped with its seq and t (deterministic co-simulation);
+    realtime: at rate_hz, for the newest plant sample's t (or time since start if no plant is named).
+    Qdot_l is published as dP_l/dt, exact for a constant-power load at constant voltage.
+    """
+    load = Profile(cfg.load, cfg.base_dir)
+    session = open_session(cfg.zenoh)
+    forecasts: dict[int, tuple[float, float, float, float]] = {}
+
+    def forecast(k: int):
+        if k not in forecasts:
+            lo, hi, dlo, dhi = load.range_over(k * cfg.window_s, (k + 1) * cfg.window_s)
+            m = cfg.forecast_margin
+            span, dspan = max(abs(lo), abs(hi)) * m, max(abs(dlo), abs(dhi)) * m
+            forecasts[k] = (lo - span, hi + span, dlo - dspan, dhi + dspan)
+        return forecasts[k]
+
+    sent = 0
+    z = [0.0, 0.0]
+    last: tuple[float, float, float] | None = None
+    try:
+        pub = publisher(session, key(cfg.prefix, cfg.id, "z"))
+        sub, meas_q = queued(session, key(cfg.prefix, cfg.plant_id, "meas")) if cfg.plant_id else (None, None)
+        token = session.liveliness().declare_token(key(cfg.prefix, cfg.id, "alive"))
+        t_start = time.monotonic()
+        period = 1.0 / cfg.rate_hz
+        nxt = time.monotonic()
+        t_plant, seq_plant = None, 0
+        while not stop.is_set() and time.monotonic() - t_start < cfg.duration_s:
+            m = None
+            if meas_q is not None:
+                try:  # lockstep: wait for the next sample; realtime: take the newest, if any
+                    m = meas_q.get(timeout=0.05) if cfg.pacing == "lockstep" else meas_q.get_nowait()
+                    while cfg.pacing != "lockstep" and not meas_q.empty():
+                        m = meas_q.get_nowait()
+                except Empty:
+                    m = None
+                if m is not None:
+                    try:
+                        v = MEAS.decode(m[1])
+                        seq_plant, t_plant = v[0], v[1]
+                    except DecodeError:
+                        m = None
+            if cfg.pacing == "lockstep":
+                if m is None:
+                    continue
+                seq, t = seq_plant, t_plant
+            else:
+                now = time.monotonic()
+                if now < nxt:
+                    time.sleep(min(nxt - now, 0.001))
+                    continue
+                nxt += period
+                if sub is not None and t_plant is None:
+                    continue  # follow the plant's clock once it runs
+                seq, t = sent, (t_plant if t_plant is not None else now - t_start)
+            P, Pd = load.value(t), load.rate(t)
+            if last is not None and t > last[0]:
+                z[0] += 0.5 * (t - last[0]) * (P + last[1])
+                z[1] += 0.5 * (t - last[0]) * (Pd + last[2])
+            last = (t, P, Pd)
+            k = int(t // cfg.window_s)
+            pub.put(Z.encode(seq, t, P, Pd, Pd, z[0], z[1], k, *forecast(k)))
+            sent += 1
+        token.undeclare()
+    finally:
+        session.close()
+    return {"sent": sent}

@@ -1,0 +1,78 @@
+"""Compact binary encoding for the hot path, laid out from the pydantic message models.
+
+Each message is ``magic (1 B) | version (1 B) | fields in model order``, little-endian: int -> uint64,
+float -> float64, bool -> uint8. The field order and types come from the models in
+``schemas.messages``, so the JSON Schema and the wire layout cannot drift apart. Decoding checks the
+size, the magic and version bytes, and that every float is finite, and names the field it rejects.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from typing import get_args
+
+from pydantic import BaseModel
+
+from .messages import Command, Interaction, Measurement
+
+VERSION = 1
+_TYPE_CODES = {int: "Q", float: "d", bool: "B"}
+
+
+class DecodeError(ValueError):
+    """A payload that is not a valid message; ``field`` names what was wrong."""
+
+    def __init__(self, message: str, field: str, reason: str):
+        super().__init__(f"{message}.{field}: {reason}")
+        self.message, self.field, self.reason = message, field, reason
+
+
+def _py_type(annotation) -> type:
+    if annotation in _TYPE_CODES:
+        return annotation
+    for a in get_args(annotation):  # Optional[...] etc.
+        if a in _TYPE_CODES:
+            return a
+    raise TypeError(f"no wire type for {annotation!r}")
+
+
+class Codec:
+    """struct-based codec for one message model."""
+
+    def __init__(self, model: type[BaseModel], magic: int):
+        self.model = model
+        self.name = model.__name__
+        self.fields = tuple(model.model_fields)
+        types = [_py_type(f.annotation) for f in model.model_fields.values()]
+        self.floats = tuple(k for k, t in enumerate(types) if t is float)
+        self.struct = struct.Struct("<BB" + "".join(_TYPE_CODES[t] for t in types))
+        self.size = self.struct.size
+        self.magic = magic
+
+    def encode(self, *values) -> bytes:
+        """Values in model field order (no validation: the hot path builds them itself)."""
+        return self.struct.pack(self.magic, VERSION, *values)
+
+    def decode(self, payload: bytes) -> tuple:
+        """Field values in model order; raises DecodeError naming the field."""
+        if len(payload) != self.size:
+            raise DecodeError(self.name, "<payload>", f"{len(payload)} bytes, expected {self.size}")
+        vals = self.struct.unpack(payload)
+        if vals[0] != self.magic:
+            raise DecodeError(self.name, "<magic>", f"0x{vals[0]:02x}, expected 0x{self.magic:02x}")
+        if vals[1] != VERSION:
+            raise DecodeError(self.name, "<version>", f"{vals[1]}, expected {VERSION}")
+        vals = vals[2:]
+        for k in self.floats:
+            if not math.isfinite(vals[k]):
+                raise DecodeError(self.name, self.fields[k], f"not finite ({vals[k]!r})")
+        return vals
+
+    def to_dict(self, vals: tuple) -> dict:
+        return dict(zip(self.fields, vals, strict=True))
+
+
+MEAS = Codec(Measurement, 0xE1)
+CMD = Codec(Command, 0xC1)
+Z = Codec(Interaction, 0x21)

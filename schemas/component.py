@@ -1,0 +1,145 @@
+"""Configuration of the live processes: controller daemon, HIL plant peer, neighbour load peer."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, Field, ValidationError, field_validator
+
+from .scenario import (
+    CircuitParams,
+    ControllerConfig,
+    LoadConfig,
+    PlantConfig,
+    ProfileConfig,
+    ScenarioError,
+    SensorConfig,
+    Strict,
+    apply_overrides,
+    format_validation_error,
+)
+
+_ID = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+class ZenohConfig(Strict):
+    """How to open the Zenoh session. ``config_file`` (Zenoh JSON5) is passed through unchanged, as
+    Zenoh's own tools take ``-c``; the other fields are applied on top of it only when given."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = []
+    connect: list[str] = []
+    config_file: str | None = None
+    multicast_scouting: bool = False
+
+
+class Named(Strict):
+    id: str = Field(description="component id: letters, digits, '_' and '-'")
+    prefix: str = Field(default="energyctl", description="key-expression prefix")
+    zenoh: ZenohConfig = ZenohConfig()
+
+    @field_validator("id")
+    @classmethod
+    def _id(cls, v: str) -> str:
+        if not _ID.match(v):
+            raise ValueError("must match [A-Za-z0-9_-]+")
+        return v
+
+    @field_validator("prefix")
+    @classmethod
+    def _prefix(cls, v: str) -> str:
+        if not v or any(not _ID.match(p) for p in v.split("/")):
+            raise ValueError("must be '/'-separated [A-Za-z0-9_-]+ chunks")
+        return v
+
+
+class LoopConfig(Strict):
+    rate_hz: Annotated[float, Field(ge=1000, le=20000)] = 10000.0
+    trigger: Literal["clock", "sample"] = Field(
+        default="clock", description="clock: own absolute-time schedule; sample: each new measurement ticks")
+    lockstep: bool = Field(default=False, description="sample trigger also waits for each neighbour's "
+                                                       "interaction variable stamped with the sample's seq")
+    lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    spin_margin_s: Annotated[float, Field(ge=0, le=0.01)] = 2e-4
+    wait: Literal["block", "spin"] = Field(
+        default="block", description="sample trigger: block on the queue (frees the core) or spin on it (lower "
+                                     "wake-up latency on VMs whose idle vCPUs halt, costs a whole core)")
+    stats_window: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000
+
+
+class ComponentConfig(Named):
+    """``energyctl run --config``: the controller daemon for one component."""
+
+    model: CircuitParams = CircuitParams()
+    controller: ControllerConfig = ControllerConfig()
+    loop: LoopConfig = LoopConfig()
+    delay_samples: Annotated[int, Field(ge=0, le=50)] = Field(
+        default=2, description="loop delay the core predicts over unless controller.delay_compensation_samples")
+    neighbours: list[str] = Field(default=[], description="ids whose interaction variables form P^{r,in}")
+    interaction_rate_hz: Annotated[float, Field(gt=0, le=20000)] = 1000.0
+    forecast_window_s: Annotated[float, Field(gt=0)] = 1.0
+    neighbour_stale_s: Annotated[float, Field(gt=0)] = 0.05
+    plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
+
+
+class PlantPeerConfig(Named):
+    """``energyctl plant --config``: the hardware-in-the-loop stand-in."""
+
+    controller_id: str = Field(description="id whose .../cmd the plant applies (its measurements go there too)")
+    wait_for: list[str] = Field(default=[], description="other ids whose liveliness token must be up before starting")
+    plant: PlantConfig = PlantConfig()
+    load: LoadConfig = LoadConfig()
+    disturbance: ProfileConfig | None = None
+    sensor: SensorConfig = SensorConfig()
+    sample_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = 10000.0
+    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = 1e-5
+    delay_samples: Annotated[int, Field(ge=0, le=50)] = Field(
+        default=0, description="extra actuation delay the plant adds (lockstep: the whole loop delay)")
+    pacing: Literal["lockstep", "realtime"] = "realtime"
+    realtime_apply_delay_samples: Annotated[int, Field(ge=1, le=50)] = Field(
+        default=1, description="realtime: the command answering sample k acts from sampling instant k + this")
+    lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    duration_s: Annotated[float, Field(gt=0, le=86400)] = 2.0
+    start_delay_s: Annotated[float, Field(ge=0, le=60)] = 0.0
+    seed: int = 1
+    v_ref_V: float = 80.0
+    out: str | None = Field(default=None, description="write the run's trace and metrics here (.mcap, .json)")
+    base_dir: str = "."
+
+
+class LoadPeerConfig(Named):
+    """``energyctl load --config``: the neighbour Sigma_2, a constant-power load."""
+
+    load: LoadConfig = LoadConfig()
+    rate_hz: Annotated[float, Field(gt=0, le=20000)] = 1000.0
+    window_s: Annotated[float, Field(gt=0)] = 1.0
+    forecast_margin: Annotated[float, Field(ge=0)] = 0.05
+    pacing: Literal["lockstep", "realtime"] = "realtime"
+    plant_id: str | None = Field(default=None, description="lockstep: answer each sample of this id's .../meas")
+    duration_s: Annotated[float, Field(gt=0, le=86400)] = 3600.0
+    base_dir: str = "."
+
+
+def load_config(kind: type[BaseModel], path: str | Path, overrides: list[str] | None = None):
+    """Read and validate a TOML config of the given model; errors name the field."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except OSError as e:
+        raise ScenarioError(f"cannot read config {p}: {e.strerror}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ScenarioError(f"config {p} is not valid TOML: {e}") from None
+    if "base_dir" in kind.model_fields:
+        data.setdefault("base_dir", str(p.parent.resolve()))
+    return config_from_dict(kind, data, overrides, str(p))
+
+
+def config_from_dict(kind: type[BaseModel], data: dict, overrides: list[str] | None = None, source: str = ""):
+    data = apply_overrides(data, overrides or [])
+    try:
+        return kind.model_validate(data)
+    except ValidationError as err:
+        raise ScenarioError(format_validation_error(err, source).replace("scenario", "config", 1)) from None

@@ -1,0 +1,76 @@
+"""Zenoh session and key expressions (the only module that knows Zenoh's configuration keys).
+
+Key expressions, for component id ``ID`` under ``PREFIX`` (default ``energyctl``):
+
+| key | who publishes | payload |
+| --- | --- | --- |
+| ``PREFIX/ID/meas`` | the plant of ID | Measurement, binary (schemas.codec.MEAS) |
+| ``PREFIX/ID/cmd`` | the controller of ID | Command, binary (CMD) |
+| ``PREFIX/ID/z`` | component ID | Interaction, binary (Z) |
+| ``PREFIX/ID/status`` | queryable of the controller | JSON |
+| ``PREFIX/ID/config`` | queryable of the controller (get; set with ``?set`` and a JSON payload) | JSON |
+| ``PREFIX/ID/alive`` | liveliness token of the controller | - |
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+from queue import SimpleQueue
+
+import zenoh
+
+from schemas.component import ZenohConfig
+
+
+def key(prefix: str, component_id: str, leaf: str) -> str:
+    return f"{prefix}/{component_id}/{leaf}"
+
+
+def zenoh_config(z: ZenohConfig) -> zenoh.Config:
+    cfg = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
+    if not z.config_file or z.mode != "peer":
+        cfg.insert_json5("mode", json.dumps(z.mode))
+    if z.listen:
+        cfg.insert_json5("listen/endpoints", json.dumps(z.listen))
+    if z.connect:
+        cfg.insert_json5("connect/endpoints", json.dumps(z.connect))
+    if not z.config_file or not z.multicast_scouting:
+        cfg.insert_json5("scouting/multicast/enabled", json.dumps(z.multicast_scouting))
+    return cfg
+
+
+def open_session(z: ZenohConfig) -> zenoh.Session:
+    return zenoh.open(zenoh_config(z))
+
+
+def free_tcp_port() -> int:
+    """A currently free TCP port on 127.0.0.1 (for tests and the demo)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def publisher(session: zenoh.Session, key_expr: str) -> zenoh.Publisher:
+    """Hot-path publisher: express (no batching), drop under congestion rather than block."""
+    return session.declare_publisher(key_expr, express=True, congestion_control=zenoh.CongestionControl.DROP)
+
+
+def queued(session: zenoh.Session, key_expr: str):
+    """(subscriber, queue): each message is put as (arrival monotonic ns, payload bytes) by a callback.
+
+    For event-driven loops: ``queue.get(timeout=...)`` sleeps without the GIL and wakes on arrival
+    (unlike a blocked ``recv()``, it can time out, so the loop can always be stopped)."""
+    q: SimpleQueue = SimpleQueue()
+    put, now = q.put, time.monotonic_ns
+
+    def on_sample(sample) -> None:
+        put((now(), sample.payload.to_bytes()))
+
+    return session.declare_subscriber(key_expr, on_sample), q
+
+
+def latest(session: zenoh.Session, key_expr: str) -> zenoh.Subscriber:
+    """Latest-value subscriber: a ring of one, polled with try_recv() from the loop thread."""
+    return session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(1))

@@ -1,0 +1,435 @@
+"""The controller daemon: the core behind a fixed-rate loop on Zenoh.
+
+Threads:
+* the loop thread reads the newest measurement and neighbour messages (ring-of-one subscribers
+  polled with try_recv, no callbacks), steps the core, publishes du/dt; it records timing into
+  preallocated arrays and never formats JSON, logs or serves queries;
+* the query thread answers ``status`` and ``config`` queries from a channel; a config set is
+  validated there and handed to the loop, which applies it at the next tick boundary;
+* the main thread waits for SIGINT/SIGTERM and shuts down within one period.
+
+Lifecycle: configured -> active <-> inactive (du/dt = 0 is published) -> shutdown.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import math
+import sys
+import threading
+import time
+from array import array
+
+import zenoh
+
+from schemas.codec import CMD, MEAS, DecodeError, Z
+from schemas.component import ComponentConfig
+from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, format_validation_error
+
+from . import __version__
+from .bus import key, latest, open_session, publisher, queued
+from .core import ControlCore, effective_gain
+from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
+from .types import Incoming, Sample
+
+STATES = ("configured", "active", "inactive", "shutdown")
+
+
+class LoopStats:
+    """Period and execution time of the last N ticks (ns) in preallocated rings, plus counters."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.period = array("q", bytes(8 * n))
+        self.exec = array("q", bytes(8 * n))
+        self.k = 0
+        self.ticks = 0
+        self.overruns = 0  # whole periods skipped because a tick ran late
+        self.no_new_sample = 0  # clock ticks that found no new measurement
+        self.missing_samples = 0  # gaps in the measurement sequence
+        self.lockstep_timeouts = 0
+
+    def record(self, period_ns: int, exec_ns: int) -> None:
+        k = self.k
+        self.period[k] = period_ns
+        self.exec[k] = exec_ns
+        self.k = k + 1 if k + 1 < self.n else 0
+        self.ticks += 1
+
+    def summary(self) -> dict:
+        m = min(self.ticks, self.n)
+        out = {"ticks": self.ticks, "overruns": self.overruns, "no_new_sample": self.no_new_sample,
+               "missing_samples": self.missing_samples, "lockstep_timeouts": self.lockstep_timeouts,
+               "overrun_pct": 100.0 * self.overruns / max(1, self.ticks + self.overruns)}
+        for name, arr in (("period_us", self.period), ("exec_us", self.exec)):
+            vals = sorted(arr[:m] if m < self.n else arr)
+            vals = [v for v in vals if v > 0] if name == "period_us" else vals
+            if vals:
+                q = len(vals)
+                out[name] = {"mean": sum(vals) / q / 1e3, "p50": vals[q // 2] / 1e3,
+                             "p99": vals[min(q - 1, int(q * 0.99))] / 1e3, "max": vals[-1] / 1e3}
+        return out
+
+
+class Neighbour:
+    __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "window", "forecast", "count")
+
+    def __init__(self, nid: str, sub):
+        self.id, self.sub = nid, sub
+        self.seq = -1
+        self.t = self.P = self.P_dot = self.Qdot = 0.0
+        self.rx_ns = 0
+        self.window = -1
+        self.forecast = (0.0, 0.0, 0.0, 0.0)
+        self.count = 0
+
+
+class Daemon:
+    def __init__(self, cfg: ComponentConfig):
+        self.cfg = cfg
+        self.period_s = 1.0 / cfg.loop.rate_hz
+        self.core = ControlCore(cfg.controller, cfg.model, self.period_s, cfg.delay_samples)
+        self.stats = LoopStats(cfg.loop.stats_window)
+        self.state = "configured"
+        self.rejected: dict[str, int] = {}
+        self.last_reject = ""
+        self.last_sample: tuple | None = None
+        self.last_cmd: tuple | None = None
+        self.config_version = 0
+        self._pending: tuple[ControllerConfig, threading.Event] | None = None
+        self._pending_state: str | None = None
+        self._stop = threading.Event()
+        self._last_seq = -1
+        self._z_seq = 0
+        self.feas = FeasibilityMonitor(cfg.forecast_window_s)
+        self._tau_p = tau_prime(cfg.model.L_H, cfg.model.R_ohm, effective_gain(cfg.controller, cfg.model))
+        self._z_every = max(1, round(cfg.loop.rate_hz / cfg.interaction_rate_hz))
+        self._own_range = [math.inf, -math.inf, math.inf, -math.inf]
+        self._window = -1
+        self.session: zenoh.Session | None = None
+
+    # ---------------------------------------------------------------- setup / teardown
+    def open(self) -> None:
+        c = self.cfg
+        self.session = s = open_session(c.zenoh)
+        plant = c.plant_id or c.id
+        if c.loop.trigger == "sample" and c.loop.wait == "block":
+            self.meas_sub, self.meas_q = queued(s, key(c.prefix, plant, "meas"))
+        else:
+            self.meas_sub = latest(s, key(c.prefix, plant, "meas"))
+        self.cmd_pub = publisher(s, key(c.prefix, c.id, "cmd"))
+        self.z_pub = publisher(s, key(c.prefix, c.id, "z"))
+        self.neighbours = [Neighbour(n, latest(s, key(c.prefix, n, "z"))) for n in c.neighbours]
+        self.q_status = s.declare_queryable(key(c.prefix, c.id, "status"), zenoh.handlers.FifoChannel(64))
+        self.q_config = s.declare_queryable(key(c.prefix, c.id, "config"), zenoh.handlers.FifoChannel(64))
+        self.token = s.liveliness().declare_token(key(c.prefix, c.id, "alive"))
+        self._threads = [threading.Thread(target=self._serve, args=(self.q_status, self._status_reply),
+                                          name="status", daemon=True),
+                         threading.Thread(target=self._serve, args=(self.q_config, self._config_reply),
+                                          name="config", daemon=True)]
+        for t in self._threads:
+            t.start()
+        self.state = "active"
+
+    def close(self) -> None:
+        self.state = "shutdown"
+        if self.session is not None:
+            try:
+                self.token.undeclare()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+            self.session.close()  # also ends the query threads' blocking recv()
+            for t in self._threads:
+                t.join(timeout=0.5)
+            self.session = None
+
+    def stop(self) -> None:
+        """Ask the loop to end (it checks between ticks and polls)."""
+        self._stop.set()
+
+    # ---------------------------------------------------------------- loop
+    def run_loop(self, max_ticks: int | None = None) -> None:
+        gc.collect()
+        gc.freeze()
+        try:
+            if self.cfg.loop.trigger == "clock":
+                self._clock_loop(max_ticks)
+            else:
+                self._sample_loop(max_ticks)
+        finally:
+            gc.unfreeze()
+
+    def _clock_loop(self, max_ticks: int | None) -> None:
+        period = int(round(self.period_s * 1e9))
+        margin = int(self.cfg.loop.spin_margin_s * 1e9)
+        now_ns, sleep = time.monotonic_ns, time.sleep
+        stats, stop = self.stats, self._stop
+        nxt = now_ns() + period
+        prev = 0
+        while not stop.is_set():
+            wait = nxt - now_ns()
+            if wait > margin:
+                sleep((wait - margin) * 1e-9)
+            while now_ns() < nxt:
+                pass
+            start = now_ns()
+            if self._pending is not None or self._pending_state is not None:
+                self._apply_pending()
+            s = self.meas_sub.try_recv()
+            if s is None:
+                stats.no_new_sample += 1
+                self._poll_neighbours(start)
+            else:
+                self._tick(s.payload.to_bytes(), start)
+            end = now_ns()
+            stats.record(start - prev if prev else 0, end - start)
+            prev = start
+            nxt += period
+            if end > nxt:  # ran into the next period: skip whole periods, count them
+                missed = (end - nxt) // period + 1
+                stats.overruns += missed
+                nxt += missed * period
+            if max_ticks is not None and stats.ticks >= max_ticks:
+                break
+
+    def _sample_loop(self, max_ticks: int | None) -> None:
+        """Tick on each measurement. Wakes on arrival (queue fed by a Zenoh callback); when several
+        arrived, only the newest is used and the others count as missing."""
+        from queue import Empty
+
+        now_ns = time.monotonic_ns
+        stats, stop, q = self.stats, self._stop, getattr(self, "meas_q", None)
+        lockstep = self.cfg.loop.lockstep
+        timeout_ns = int(self.cfg.loop.lockstep_timeout_s * 1e9)
+        spin = self.cfg.loop.wait == "spin"
+        sub = self.meas_sub
+        prev = idle = 0
+        while not stop.is_set():
+            if self._pending is not None or self._pending_state is not None:
+                self._apply_pending()
+            if spin:  # poll the ring of one: filled on Zenoh's side, no GIL needed to fill it
+                m = sub.try_recv()
+                if m is None:
+                    idle += 1
+                    if idle & 0x3FF == 0:  # keep neighbour freshness current while no sample comes
+                        self._poll_neighbours(now_ns())
+                    continue
+                idle = 0
+                payload = m.payload.to_bytes()
+            else:
+                try:
+                    item = q.get(timeout=0.05)
+                except Empty:
+                    self._poll_neighbours(now_ns())
+                    continue
+                while not q.empty():  # newest wins
+                    item = q.get_nowait()
+                payload = item[1]
+            start = now_ns()
+            if lockstep and self.neighbours:
+                seq = int.from_bytes(payload[2:10], "little")
+                deadline = start + timeout_ns
+                while any(nb.seq < seq for nb in self.neighbours) and not stop.is_set():
+                    self._poll_neighbours(now_ns())
+                    if now_ns() > deadline:
+                        stats.lockstep_timeouts += 1
+                        break
+                    time.sleep(20e-6)
+            t_exec = now_ns()
+            self._tick(payload, t_exec)
+            end = now_ns()
+            stats.record(start - prev if prev else 0, end - t_exec)
+            prev = start
+            if max_ticks is not None and stats.ticks >= max_ticks:
+                break
+
+    def _reject(self, reason: str) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        self.last_reject = reason
+
+    def _poll_neighbours(self, now: int) -> None:
+        for nb in self.neighbours:
+            z = nb.sub.try_recv()
+            if z is None:
+                continue
+            try:
+                v = Z.decode(z.payload.to_bytes())
+            except DecodeError as e:
+                self._reject(f"{nb.id}.{e.field}: {e.reason}")
+                continue
+            nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
+            nb.window, nb.forecast = v[7], (v[8], v[9], v[10], v[11])
+            nb.rx_ns = now
+            nb.count += 1
+
+    def _apply_pending(self) -> None:
+        """Apply a validated config change or lifecycle transition (called between ticks)."""
+        if self._pending is not None:
+            new_cfg, ev = self._pending
+            self.core.set_gains(new_cfg)
+            self.config_version += 1
+            self._pending = None
+            ev.set()
+        if self._pending_state is not None:
+            self.state, self._pending_state = self._pending_state, None
+
+    def _tick(self, payload: bytes, now: int) -> None:
+        self._poll_neighbours(now)
+        try:
+            v = MEAS.decode(payload)
+        except DecodeError as e:
+            self._reject(f"meas.{e.field}: {e.reason}")
+            return
+        seq = v[0]
+        if seq <= self._last_seq:
+            self._reject("meas.seq: not increasing")
+            return
+        if self._last_seq >= 0 and seq > self._last_seq + 1:
+            self.stats.missing_samples += seq - self._last_seq - 1
+        self._last_seq = seq
+        self.last_sample = v
+        stale_ns = int(self.cfg.neighbour_stale_s * 1e9)
+        P_in = P_in_dot = 0.0
+        fresh = True
+        for nb in self.neighbours:
+            if nb.count == 0 or now - nb.rx_ns > stale_ns:
+                fresh = False
+            P_in -= nb.P
+            P_in_dot -= nb.P_dot
+        s = Sample(seq, v[1], v[2], v[3], v[4], v[5])
+        if self.state == "active" and fresh:
+            out = self.core.step(s, Incoming(P_in, P_in_dot))
+            du, limited = out.du_dt, out.limited
+            est = out.est
+            self._feasibility(v[1], est)
+        else:
+            du, limited = 0.0, False  # inactive, or no fresh reference: hold the source voltage
+        self.cmd_pub.put(CMD.encode(seq, v[1], du, limited))
+        self.last_cmd = (seq, v[1], du, limited)
+        if self.stats.ticks % self._z_every == 0 and self.core.out.est is not None:
+            self._publish_z(v[1])
+
+    def _feasibility(self, t: float, est) -> None:
+        k = int(t // self.cfg.forecast_window_s)
+        if k != self._window:
+            self._window = k
+            self._own_range = [math.inf, -math.inf, math.inf, -math.inf]
+            if self.neighbours and all(nb.window == k for nb in self.neighbours):
+                lo = sum(nb.forecast[0] for nb in self.neighbours)
+                hi = sum(nb.forecast[1] for nb in self.neighbours)
+                dlo = sum(nb.forecast[2] for nb in self.neighbours)
+                dhi = sum(nb.forecast[3] for nb in self.neighbours)
+                self.feas.set_range(k, incoming_range(lo, hi, dlo, dhi, self._tau_p))
+        r = self._own_range
+        P, Q = est.P_r_out_port, est.Qdot_r_out_port
+        if P < r[0]:
+            r[0] = P
+        if P > r[1]:
+            r[1] = P
+        if Q < r[2]:
+            r[2] = Q
+        if Q > r[3]:
+            r[3] = Q
+        self.feas.update(t, P, Q)
+
+    def _publish_z(self, t: float) -> None:
+        est = self.core.out.est
+        fit = self.core.estimator.fit
+        v, i2 = fit.value[1], fit.value[2]
+        P_dot = -(fit.slope[1] * i2 + v * fit.slope[2])
+        z0, z1 = self.core.estimator.z_out
+        r = self._own_range
+        rng = (r[0], r[1], r[2], r[3]) if math.isfinite(r[0]) else (est.P_r_out_port,) * 2 + (0.0, 0.0)
+        self._z_seq += 1
+        self.z_pub.put(Z.encode(self._z_seq, t, est.P_r_out_port, P_dot, est.Qdot_r_out_port, z0, z1,
+                                max(self._window, 0), *rng))
+
+    # ---------------------------------------------------------------- queries (query thread)
+    def _serve(self, q, handler) -> None:
+        while True:
+            try:
+                query = q.recv()
+            except Exception:  # noqa: BLE001 - channel closed at shutdown
+                return
+            try:
+                ok, body = handler(query)
+                if ok:
+                    query.reply(query.key_expr, json.dumps(body))
+                else:
+                    query.reply_err(json.dumps(body))
+            except Exception as e:  # noqa: BLE001 - a bad query must not kill the thread
+                try:
+                    query.reply_err(json.dumps({"error": f"{type(e).__name__}: {e}"}))
+                except Exception:  # noqa: BLE001
+                    pass
+            finally:
+                query.drop()
+
+    def status(self) -> dict:
+        now = time.monotonic_ns()
+        est = self.core.out.est
+        c = self.cfg
+        ls = self.last_sample
+        return {
+            "id": c.id, "version": __version__, "state": self.state, "config_version": self.config_version,
+            "loop": {"rate_hz": c.loop.rate_hz, "trigger": c.loop.trigger, **self.stats.summary()},
+            "last_sample": dict(zip(MEAS.fields, ls, strict=True)) if ls else None,
+            "last_command": dict(zip(CMD.fields, self.last_cmd, strict=True)) if self.last_cmd else None,
+            "estimate": {k: getattr(est, k) for k in ("E", "E_t", "p", "y_z", "y_z_balance", "eta", "P_r_out_port",
+                                                      "Qdot_r_out_port")} if est else None,
+            "z_out": list(self.core.estimator.z_out),
+            "y_ref": self.core.out.y_ref, "u_z": self.core.out.u_z,
+            "neighbours": {nb.id: {"messages": nb.count, "age_s": (now - nb.rx_ns) / 1e9 if nb.count else None,
+                                   "fresh": nb.count > 0 and now - nb.rx_ns <= c.neighbour_stale_s * 1e9,
+                                   "P_r_out": nb.P} for nb in self.neighbours},
+            "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
+                            "recent": [v.__dict__ for v in self.feas.violations[-5:]]},
+            "rejected": dict(self.rejected), "last_reject": self.last_reject,
+        }
+
+    def _status_reply(self, query) -> tuple[bool, dict]:
+        return True, self.status()
+
+    def _config_reply(self, query) -> tuple[bool, dict]:
+        params = str(query.parameters)
+        if "set" not in params.split(";")[0].split("&") and query.payload is None:
+            return True, {"controller": self.core.cfg.model_dump(), "state": self.state,
+                          "config_version": self.config_version}
+        try:
+            req = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
+            sets = req.get("set", [])
+            if not isinstance(sets, list) or not all(isinstance(x, str) for x in sets):
+                raise ScenarioError("set: expected a list of 'key=value' strings")
+        except (ValueError, ScenarioError) as e:
+            return False, {"error": str(e)}
+        return self.apply_sets(sets)
+
+    def apply_sets(self, sets: list[str]) -> tuple[bool, dict]:
+        """Validate ``controller.X=value`` / ``lifecycle=active|inactive`` and hand them to the loop."""
+        ctl = [s for s in sets if not s.startswith("lifecycle=")]
+        life = [s.split("=", 1)[1].strip().strip('"') for s in sets if s.startswith("lifecycle=")]
+        if life and life[-1] not in ("active", "inactive"):
+            return False, {"error": f"lifecycle: {life[-1]!r} is not one of active, inactive"}
+        bad = [s for s in ctl if not s.startswith("controller.")]
+        if bad:
+            return False, {"error": f"only controller.* and lifecycle can be set at run time: {bad}"}
+        try:
+            data = apply_overrides({"controller": self.core.cfg.model_dump()}, ctl)["controller"]
+            new = ControllerConfig.model_validate(data)
+        except ScenarioError as e:
+            return False, {"error": str(e)}
+        except Exception as e:  # pydantic.ValidationError
+            fe = format_validation_error(e, "set") if hasattr(e, "errors") else str(e)
+            return False, {"error": fe.replace("scenario", "config", 1)}
+        if new.kind != self.core.cfg.kind or new.mapping != self.core.cfg.mapping:
+            return False, {"error": "controller.kind and controller.mapping cannot change at run time"}
+        if life:
+            self._pending_state = life[-1]
+        if ctl:
+            ev = threading.Event()
+            self._pending = (new, ev)
+            if not ev.wait(2.0):
+                return False, {"error": "not applied: the loop did not tick within 2 s"}
+        print(f"energyctl[{self.cfg.id}]: config set {sets} -> version {self.config_version}", file=sys.stderr)
+        return True, {"applied": sets, "config_version": self.config_version, "controller": self.core.cfg.model_dump()}

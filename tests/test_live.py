@@ -1,0 +1,143 @@
+"""The daemon on Zenoh with the plant and load peers, on loopback (free ports, no multicast scouting)."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+import pytest
+from conftest import ROOT, SCENARIOS
+from mcap.reader import make_reader
+
+from clients.live import configs_from_scenario, run_live, wait_until
+from clients.peers import run_load
+from clients.query import QueryError, query
+from schemas.component import ComponentConfig, LoadPeerConfig, ZenohConfig, config_from_dict
+from schemas.scenario import load_scenario
+from service.bus import free_tcp_port
+from service.daemon import Daemon
+from service.sim import run
+
+
+def read_topic(path, suffix):
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        return [json.loads(m.data) for _s, c, m in reader.iter_messages() if c.topic.endswith(suffix)]
+
+
+def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
+    scn = load_scenario(SCENARIOS / "paper-varying-load.toml", ["timing.duration_s=0.05"])
+    out = tmp_path / "lockstep.mcap"
+    res = run_live(scn, lockstep=True, rate_hz=None, out=str(out), duration_s=None, workdir=str(tmp_path))
+    assert res["counters"]["timeouts"] == 0 and res["counters"]["commands"] == 500
+    live = read_topic(out, "/plant")
+    sim = run(scn).trace
+    v_live = np.array([m["v"] for m in live])
+    i_live = np.array([m["i"] for m in live])
+    assert len(v_live) == len(sim["v"])
+    np.testing.assert_allclose(v_live, sim["v"], rtol=1e-9, atol=0)
+    np.testing.assert_allclose(i_live, sim["i"], rtol=1e-9, atol=1e-9)
+    cmds = read_topic(out, "/cmd")
+    np.testing.assert_allclose([c["du_dt"] for c in cmds], sim["du_dt"], rtol=1e-9, atol=1e-9)
+
+
+@pytest.fixture
+def daemon_and_load():
+    """A daemon (clock trigger, 2 kHz) with one neighbour load peer; no plant: feed measurements by hand."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _plant, load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=2000.0)
+    comp["neighbour_stale_s"] = 0.2
+    comp["loop"]["trigger"] = "clock"
+    cfg = config_from_dict(ComponentConfig, comp)
+    d = Daemon(cfg)
+    d.open()
+    loop = threading.Thread(target=d.run_loop, daemon=True)
+    loop.start()
+    stop = threading.Event()
+    load["plant_id"] = None
+    load["rate_hz"] = 200.0
+    lt = threading.Thread(target=run_load, args=(config_from_dict(LoadPeerConfig, load), stop), daemon=True)
+    lt.start()
+    try:
+        yield d, ep, stop
+    finally:
+        stop.set()
+        d.stop()
+        loop.join(2.0)
+        lt.join(2.0)
+        d.close()
+
+
+def zc(ep):
+    return ZenohConfig(mode="peer", connect=[ep])
+
+
+def test_status_config_and_neighbour_freshness(daemon_and_load):
+    d, ep, stop_load = daemon_and_load
+    assert wait_until(lambda: d.neighbours[0].count > 5, 10.0)
+    st = query(zc(ep), "energyctl", "source", "status", timeout_s=5.0)
+    assert st["state"] == "active" and st["neighbours"]["load"]["fresh"] is True
+    assert st["loop"]["ticks"] > 0 and "p99" in st["loop"]["exec_us"]
+    cfg = query(zc(ep), "energyctl", "source", "config")
+    assert cfg["controller"]["K_per_s"] == 2000.0
+    # a set is validated, applied at a tick boundary, and reported
+    ans = query(zc(ep), "energyctl", "source", "config", sets=["controller.K_per_s=800.0"])
+    assert ans["controller"]["K_per_s"] == 800.0 and d.core.cfg.K_per_s == 800.0
+    assert d.core._gains[1] == 800.0  # the core's cached gain changed too
+    with pytest.raises(QueryError, match="K_per_s"):
+        query(zc(ep), "energyctl", "source", "config", sets=["controller.K_per_s=-1"])
+    with pytest.raises(QueryError, match="only controller"):
+        query(zc(ep), "energyctl", "source", "config", sets=["model.R_ohm=1"])
+    assert d.core.cfg.K_per_s == 800.0
+    # lifecycle
+    query(zc(ep), "energyctl", "source", "config", sets=["lifecycle=inactive"])
+    assert wait_until(lambda: d.state == "inactive", 5.0)
+    # the neighbour going silent flips its freshness
+    stop_load.set()
+    assert wait_until(lambda: not query(zc(ep), "energyctl", "source", "status")["neighbours"]["load"]["fresh"], 5.0)
+
+
+def test_query_without_a_controller_fails_clearly():
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with pytest.raises(QueryError, match="no answer"):
+        query(ZenohConfig(mode="peer", listen=[ep]), "energyctl", "nobody", "status", timeout_s=0.5)
+
+
+def test_readme_documents_every_cli_command():
+    text = (ROOT / "README.md").read_text()
+    for cmd in ("energyctl run", "energyctl plant", "energyctl load", "energyctl query", "energyctl demo"):
+        assert cmd in text
+
+
+def test_sigterm_stops_the_daemon_within_a_second_and_it_reports(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from clients.live import _toml
+
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _plant, _load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=2000.0)
+    comp["loop"]["trigger"] = "clock"
+    path = tmp_path / "c.toml"
+    path.write_text(_toml(comp))
+    stats = tmp_path / "status.json"
+    p = subprocess.Popen([sys.executable, "-m", "clients.cli", "run", "--config", str(path), "--stats-out", str(stats)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert wait_until(lambda: "active" in (p.stderr.readline() or ""), 15.0)
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        out, _err = p.communicate(timeout=5.0)
+        assert time.monotonic() - t0 < 1.0 + 0.5  # one period plus process teardown
+        assert p.returncode == 0
+        assert json.loads(out.strip().splitlines()[-1])["loop"]["ticks"] > 0
+        assert json.loads(stats.read_text())["state"] == "shutdown"
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
