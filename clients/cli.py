@@ -261,6 +261,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         res = {"bench": "sim", "scenario": scn.name, "simulated_s": 1.0, "control_hz": 10000, "plant_hz": 100000,
                "wall_s_best": best, "wall_s_worst": worst, "realtime_ratio_best": 1.0 / best,
                "realtime_ratio_worst": 1.0 / worst}
+    elif args.what == "latency":
+        from .bench_latency import bench_latency
+
+        res = bench_latency(n=args.n, wait=args.wait)
     else:
         res = _bench_core(args)
     print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
@@ -428,8 +432,11 @@ def build_parser() -> argparse.ArgumentParser:
     scen_opts(d)
     d.set_defaults(func=cmd_demo)
 
-    b = sub.add_parser("bench", help="benchmarks: 'sim' (real-time ratio), 'core' (per-step cost)")
-    b.add_argument("what", choices=["sim", "core"])
+    b = sub.add_parser("bench", help="benchmarks: 'sim' (real-time ratio), 'core' (per-step cost), "
+                                     "'latency' (daemon round trip vs bare Zenoh echo)")
+    b.add_argument("what", choices=["sim", "core", "latency"])
+    b.add_argument("-n", type=int, default=3000, help="latency: round trips per target (default %(default)s)")
+    b.add_argument("--wait", choices=["block", "spin"], default="block", help="latency: daemon wait strategy")
     b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
     scen_opts(b)
     b.add_argument("--repeat", type=int, default=3)

@@ -130,6 +130,14 @@ def test_sigterm_stops_the_daemon_within_a_second_and_it_reports(tmp_path):
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     try:
         assert wait_until(lambda: "active" in (p.stderr.readline() or ""), 15.0)
+
+        def ticking() -> bool:
+            try:
+                return query(zc(ep), "energyctl", "source", "status", timeout_s=1.0)["loop"]["ticks"] > 0
+            except QueryError:
+                return False
+
+        assert wait_until(ticking, 15.0)
         t0 = time.monotonic()
         p.send_signal(signal.SIGTERM)
         out, _err = p.communicate(timeout=5.0)

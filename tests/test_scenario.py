@@ -86,3 +86,14 @@ def test_committed_json_schemas_are_generated_from_the_models(tmp_path):
     committed = SCENARIOS.parent / "schemas" / "json"
     for p in write_json_schemas(tmp_path):
         assert (committed / p.name).read_text() == p.read_text(), f"run: energyctl schema ({p.name} is stale)"
+
+
+def test_shipped_live_configs_validate():
+    from schemas.component import ComponentConfig, LoadPeerConfig, PlantPeerConfig, load_config
+
+    live = SCENARIOS / "live"
+    assert load_config(ComponentConfig, live / "component.toml").neighbours == ["load"]
+    assert load_config(PlantPeerConfig, live / "plant.toml").controller_id == "source"
+    assert load_config(LoadPeerConfig, live / "load.toml").plant_id == "source"
+    with pytest.raises(ScenarioError, match="loop.rate_hz"):
+        load_config(ComponentConfig, live / "component.toml", ["loop.rate_hz=50.0"])
