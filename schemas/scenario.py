@@ -107,6 +107,9 @@ class TimingConfig(Strict):
     plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = 1e-5
     delay_samples: Annotated[int, Field(ge=0, le=50)] = 0
     duration_s: Annotated[float, Field(gt=0, le=3600)] = 0.2
+    command_loss: Annotated[float, Field(ge=0, lt=1)] = Field(
+        default=0.0, description="probability that a command never acts (the source holds its voltage that "
+                                 "period), seeded; models late or lost commands")
 
 
 class LimitsConfig(Strict):

@@ -56,6 +56,8 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
     sensor = Sensor(scn.sensor, scn.seed)
     core = ControlCore(scn.controller, scn.model, T, tm.delay_samples)
     delay: deque[float] = deque([0.0] * tm.delay_samples)
+    loss = tm.command_loss
+    loss_rng = np.random.default_rng([scn.seed, 0xC0DE])  # its own stream: sensor noise stays the same
 
     feas = FeasibilityMonitor(scn.feasibility.window_s)
     tp = tau_prime(scn.model.L_H, scn.model.R_ohm, effective_gain(scn.controller, scn.model))
@@ -90,6 +92,8 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
             r_apply = delay.popleft()
         else:
             r_apply = out.du_dt
+        if loss and loss_rng.random() < loss:
+            r_apply = 0.0  # this command is lost: the source holds its voltage
         est = out.est
         if t >= t_warm:
             feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
