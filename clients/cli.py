@@ -236,6 +236,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if "latency_us" in res:
             lat = res["latency_us"]
             print(f"measurement->command latency: p50 {lat['p50']:.0f} us, p99 {lat['p99']:.0f} us")
+        if res.get("daemon_log"):
+            lg = res["daemon"]["logging"]
+            print(f"controller log: {res['daemon_log']} ({lg['written']} messages, drops {sum(lg['drops'].values())}, "
+                  f"{lg['state']}); replay: energyctl replay {res['daemon_log']}")
         dev = res.get("max_dev_after_50ms_pct")
         regulated = (not m["diverged"]) and m["settle_s"] is not None and (
             dev is None or dev <= 2.0)
@@ -350,6 +354,30 @@ def cmd_query(args: argparse.Namespace) -> int:
     else:
         print(render(["field", "value"], [[k, v] for k, v in flatten(ans)]))
     return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from .replay import ReplayError, replay
+
+    if (args.set or args.controller) and not args.out:
+        raise ScenarioError("replay: a what-if (--set/--controller) needs --out NEW.mcap")
+    try:
+        res = replay(args.log, args.set, args.controller, args.out, progress=not args.json)
+    except (ReplayError, OSError) as e:
+        print(f"energyctl replay: {e}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(res))
+    elif args.out:
+        print(f"what-if: {res['ticks']} ticks replayed into {res['out']} ({res['wall_s']:.2f} s)")
+    elif res["identical"]:
+        print(f"identical: {res['compared']} commands reproduced bit for bit "
+              f"({res['ticks']} ticks, {res['wall_s']:.2f} s, {res['speed_x_realtime']:.1f}x real time)")
+    else:
+        d = res["first_divergence"]
+        print(f"diverged at t = {d['t']:.6f} s (seq {d['seq']}): {d['field']} logged {d['logged']!r}, "
+              f"replayed {d['replayed']!r}")
+    return 0 if (res["identical"] or args.out) else 1
 
 
 def cmd_schema(args: argparse.Namespace) -> int:
@@ -478,6 +506,18 @@ def build_parser() -> argparse.ArgumentParser:
     qu.add_argument("--json", action="store_true")
     zenoh_opts(qu)
     qu.set_defaults(func=cmd_query)
+
+    rp = sub.add_parser("replay", help="re-run a log's inputs through the core; 'identical' or the first divergence",
+                        description="Feeds the logged measurements and incoming interaction variables through a core "
+                                    "rebuilt from the log's 'core' record, sample by sample (no clock), and compares "
+                                    "every command bit for bit: prints 'identical' (exit 0) or the first divergence "
+                                    "(exit 1). --set/--controller run a what-if into --out NEW.mcap.")
+    rp.add_argument("log", metavar="LOG.mcap")
+    rp.add_argument("--set", action="append", metavar="controller.key=value")
+    rp.add_argument("--controller", choices=CONTROLLERS)
+    rp.add_argument("--out", metavar="NEW.mcap")
+    rp.add_argument("--json", action="store_true")
+    rp.set_defaults(func=cmd_replay)
 
     g = sub.add_parser("schema", help="write JSON Schemas of the message and scenario models")
     g.add_argument("--out", default="schemas/json")

@@ -107,6 +107,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
                      "wait": "block" if lockstep else "spin"},
             "forecast_window_s": scn.feasibility.window_s, "interaction_rate_hz": 100.0}
     comp["controller"]["delay_compensation_samples"] = None
+    if out:
+        comp["log_dir"] = str(Path(out).parent)
     plant = {"id": "plant", "controller_id": "source", "wait_for": ["load"], "zenoh": zc,
              "plant": scn.plant.model_dump(),
              "load": scn.load.model_dump(), "sensor": scn.sensor.model_dump(), "sample_rate_hz": rate,
@@ -220,6 +222,7 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
     res["daemon"] = json.loads(stats_path.read_text()) if stats_path.exists() else {
         "error": results.get("daemon", (None, "", ""))[2][-800:]}
     res["endpoint"] = ep
+    res["daemon_log"] = (res["daemon"].get("logging") or {}).get("path")
     return res
 
 

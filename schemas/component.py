@@ -83,6 +83,9 @@ class ComponentConfig(Named):
     forecast_window_s: Annotated[float, Field(gt=0)] = 1.0
     neighbour_stale_s: Annotated[float, Field(gt=0)] = 0.05
     plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
+    log_dir: str | None = Field(default=None, description="record to <log_dir>/<id>-<UTC time>.mcap (off the loop)")
+    log_est_every: Annotated[int, Field(ge=1, le=100000)] = Field(default=10, description="estimator record decimation")
+    log_queue: Annotated[int, Field(ge=100, le=10_000_000)] = 200_000
 
 
 class PlantPeerConfig(Named):

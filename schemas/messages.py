@@ -70,6 +70,25 @@ class Estimate(Msg):
     z_out1: float = Field(description="integral of Qdot^{r,out}, W")
 
 
+class TickInput(Msg):
+    """What the core was given besides the measurement on one tick (topic ``.../z_in``): enough to replay it."""
+
+    seq: int = Field(ge=0, description="measurement seq of the tick")
+    t: float = Field(description="s")
+    P_r_in: float = Field(description="incoming interaction P^{r,in} = -sum_j P_j^{r,out}, W")
+    P_r_in_dot: float = Field(description="its rate, W/s")
+    stepped: bool = Field(description="false: the core was not stepped (inactive or no fresh reference), du/dt = 0")
+
+
+class Event(Msg):
+    """Diagnostics and events (topic ``.../events``): config changes, lifecycle, rejections, recorder drops."""
+
+    t: float = Field(description="s (sample time of the tick it belongs to, or monotonic time)")
+    seq: int = Field(ge=0, description="measurement seq the event precedes (config changes apply before it)")
+    kind: str
+    detail: str = Field(description="JSON text")
+
+
 class Plant(Msg):
     """True plant state in simulation (topic ``.../plant``); not available on real hardware."""
 
@@ -85,6 +104,8 @@ MESSAGE_MODELS: dict[str, type[Msg]] = {
     "energyctl.Command": Command,
     "energyctl.Estimate": Estimate,
     "energyctl.Interaction": Interaction,
+    "energyctl.TickInput": TickInput,
+    "energyctl.Event": Event,
     "energyctl.Plant": Plant,
 }
 

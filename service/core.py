@@ -161,6 +161,14 @@ class Output:
         self.est: RLCEnergy | None = None
 
 
+def core_metadata(controller: ControllerConfig, model: CircuitParams, period_s: float, delay: int) -> str:
+    """What replay needs to rebuild a ControlCore exactly (JSON text for an MCAP metadata record)."""
+    import json
+
+    return json.dumps({"controller": controller.model_dump(), "model": model.model_dump(), "period_s": period_s,
+                       "delay_samples": delay})
+
+
 def effective_gain(cfg: ControllerConfig, model: CircuitParams) -> float:
     """K used for tau' in the feasibility ranges (paper: K2 for the proportional law, K for FBLC)."""
     if cfg.kind in ("fblc", "smc"):

@@ -29,7 +29,7 @@ from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, f
 
 from . import __version__
 from .bus import key, latest, open_session, publisher, queued
-from .core import ControlCore, effective_gain
+from .core import ControlCore, core_metadata, effective_gain
 from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from .types import Incoming, Sample
 
@@ -97,7 +97,8 @@ class Daemon:
         self.last_sample: tuple | None = None
         self.last_cmd: tuple | None = None
         self.config_version = 0
-        self._pending: tuple[ControllerConfig, threading.Event] | None = None
+        self._pending: tuple[ControllerConfig, threading.Event, str] | None = None
+        self.recorder = None
         self._pending_state: str | None = None
         self._stop = threading.Event()
         self._last_seq = -1
@@ -124,6 +125,7 @@ class Daemon:
         self.q_status = s.declare_queryable(key(c.prefix, c.id, "status"), zenoh.handlers.FifoChannel(64))
         self.q_config = s.declare_queryable(key(c.prefix, c.id, "config"), zenoh.handlers.FifoChannel(64))
         self.token = s.liveliness().declare_token(key(c.prefix, c.id, "alive"))
+        self.recorder = self._open_recorder() if c.log_dir else None
         self._threads = [threading.Thread(target=self._serve, args=(self.q_status, self._status_reply),
                                           name="status", daemon=True),
                          threading.Thread(target=self._serve, args=(self.q_config, self._config_reply),
@@ -132,8 +134,33 @@ class Daemon:
             t.start()
         self.state = "active"
 
+    def _open_recorder(self):
+        from datetime import UTC, datetime
+
+        from schemas.messages import Estimate, Event, TickInput
+
+        from .recorder import Recorder, git_revision
+
+        c = self.cfg
+        base = f"{c.prefix}/{c.id}"
+        self.t_meas, self.t_cmd, self.t_zin = f"{base}/meas", f"{base}/cmd", f"{base}/z_in"
+        self.t_zout, self.t_est, self.t_ev = f"{base}/z_out", f"{base}/est", f"{base}/events"
+        topics = {self.t_meas: ("energyctl.Measurement", MEAS.fields), self.t_cmd: ("energyctl.Command", CMD.fields),
+                  self.t_zin: ("energyctl.TickInput", tuple(TickInput.model_fields)),
+                  self.t_zout: ("energyctl.Interaction", Z.fields),
+                  self.t_est: ("energyctl.Estimate", tuple(Estimate.model_fields)),
+                  self.t_ev: ("energyctl.Event", tuple(Event.model_fields))}
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
+        path = f"{c.log_dir}/{c.id}-{stamp}.mcap"
+        meta = {"config": {"json": c.model_dump_json()}, "core": {"json": core_metadata(
+            self.core.cfg, c.model, self.period_s, self.core.d)}, "build": {"git": git_revision()}}
+        self.log_path = path
+        return Recorder(path, topics, meta, maxsize=c.log_queue)
+
     def close(self) -> None:
         self.state = "shutdown"
+        if getattr(self, "recorder", None) is not None:
+            self.recorder.close()
         if self.session is not None:
             try:
                 self.token.undeclare()
@@ -247,6 +274,9 @@ class Daemon:
     def _reject(self, reason: str) -> None:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
         self.last_reject = reason
+        if self.recorder is not None:
+            t = self.last_sample[1] if self.last_sample else 0.0
+            self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "reject", reason))
 
     def _poll_neighbours(self, now: int) -> None:
         for nb in self.neighbours:
@@ -266,10 +296,13 @@ class Daemon:
     def _apply_pending(self) -> None:
         """Apply a validated config change or lifecycle transition (called between ticks)."""
         if self._pending is not None:
-            new_cfg, ev = self._pending
+            new_cfg, ev, text = self._pending
             self.core.set_gains(new_cfg)
             self.config_version += 1
             self._pending = None
+            if self.recorder is not None:  # applies before the next measurement
+                t = self.last_sample[1] if self.last_sample else 0.0
+                self.recorder.offer(self.t_ev, t, (t, self._last_seq + 1, "config", text))
             ev.set()
         if self._pending_state is not None:
             self.state, self._pending_state = self._pending_state, None
@@ -298,7 +331,8 @@ class Daemon:
             P_in -= nb.P
             P_in_dot -= nb.P_dot
         s = Sample(seq, v[1], v[2], v[3], v[4], v[5])
-        if self.state == "active" and fresh:
+        stepped = self.state == "active" and fresh
+        if stepped:
             out = self.core.step(s, Incoming(P_in, P_in_dot))
             du, limited = out.du_dt, out.limited
             est = out.est
@@ -307,6 +341,16 @@ class Daemon:
             du, limited = 0.0, False  # inactive, or no fresh reference: hold the source voltage
         self.cmd_pub.put(CMD.encode(seq, v[1], du, limited))
         self.last_cmd = (seq, v[1], du, limited)
+        rec = self.recorder
+        if rec is not None:  # tuples only: encoding and I/O happen on the recorder thread
+            t = v[1]
+            rec.offer(self.t_meas, t, v)
+            rec.offer(self.t_zin, t, (seq, t, P_in, P_in_dot, stepped))
+            rec.offer(self.t_cmd, t, self.last_cmd)
+            if stepped and self.stats.ticks % self.cfg.log_est_every == 0:
+                o = self.core.out
+                rec.offer(self.t_est, t, (t, est.E, est.p, est.E_t, o.y_z, est.y_z_balance, o.y_ref, est.eta, o.u_z,
+                                          est.P_r_out_port, est.Qdot_r_out_port, o.z_out0, o.z_out1))
         if self.stats.ticks % self._z_every == 0 and self.core.out.est is not None:
             self._publish_z(v[1])
 
@@ -342,8 +386,10 @@ class Daemon:
         r = self._own_range
         rng = (r[0], r[1], r[2], r[3]) if math.isfinite(r[0]) else (est.P_r_out_port,) * 2 + (0.0, 0.0)
         self._z_seq += 1
-        self.z_pub.put(Z.encode(self._z_seq, t, est.P_r_out_port, P_dot, est.Qdot_r_out_port, z0, z1,
-                                max(self._window, 0), *rng))
+        vals = (self._z_seq, t, est.P_r_out_port, P_dot, est.Qdot_r_out_port, z0, z1, max(self._window, 0), *rng)
+        self.z_pub.put(Z.encode(*vals))
+        if self.recorder is not None:
+            self.recorder.offer(self.t_zout, t, vals)
 
     # ---------------------------------------------------------------- queries (query thread)
     def _serve(self, q, handler) -> None:
@@ -386,6 +432,9 @@ class Daemon:
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
                             "recent": [v.__dict__ for v in self.feas.violations[-5:]]},
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
+            "logging": None if self.recorder is None else {
+                "path": self.log_path, "written": self.recorder.written, "drops": dict(self.recorder.drops),
+                "state": "degraded" if self.recorder.error else "ok", "error": self.recorder.error},
         }
 
     def _status_reply(self, query) -> tuple[bool, dict]:
@@ -428,7 +477,7 @@ class Daemon:
             self._pending_state = life[-1]
         if ctl:
             ev = threading.Event()
-            self._pending = (new, ev)
+            self._pending = (new, ev, new.model_dump_json())
             if not ev.wait(2.0):
                 return False, {"error": "not applied: the loop did not tick within 2 s"}
         print(f"energyctl[{self.cfg.id}]: config set {sets} -> version {self.config_version}", file=sys.stderr)

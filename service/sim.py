@@ -29,6 +29,7 @@ TRACE_FIELDS = (
     "i_meas", "v_meas", "u_meas", "i_load_meas",  # what the controller saw
     "du_dt", "du_dt_applied", "u_z", "y_z_true", "y_ref_true", "y_z", "y_ref",
     "E", "E_t", "p", "y_z_balance", "eta", "P_r_out", "Qdot_r_out", "z_out0", "z_out1",
+    "P_r_in", "P_r_in_dot",  # what the core was given (replay input)
 )
 
 
@@ -39,6 +40,7 @@ class SimResult:
     metrics: dict
     violations: list[Violation] = field(default_factory=list)
     windows: list = field(default_factory=list)
+    delay_compensation: int = 0
 
 
 def substeps(period_s: float, plant_step_s: float) -> int:
@@ -102,7 +104,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
         row((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, out.du_dt, r_apply, out.u_z,
              R_true * pi * pi - (pu + um) * pi, y_ref_of(-P_l, pv), out.y_z, out.y_ref,
              est.E, est.E_t, est.p, est.y_z_balance, est.eta, est.P_r_out_port, est.Qdot_r_out_port,
-             out.z_out0, out.z_out1))
+             out.z_out0, out.z_out1, inc.P_r_in, inc.P_r_in_dot))
         plant.advance(r_apply, T, n_sub)
         if not (v_lo < plant.v < v_hi) or not math.isfinite(plant.i) or abs(plant.i) > 1e4:
             diverged = True
@@ -111,7 +113,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
     cols = np.asarray(rows, dtype=float).reshape(len(rows), len(TRACE_FIELDS)).T
     trace = {f: cols[k].copy() for k, f in enumerate(TRACE_FIELDS)}
     metrics = compute_metrics(trace, v_ref, tm.duration_s, diverged, feas.count)
-    return SimResult(scn, trace, metrics, feas.violations, list(feas.windows.values()))
+    return SimResult(scn, trace, metrics, feas.violations, list(feas.windows.values()), core.d)
 
 
 def compute_metrics(tr: dict[str, np.ndarray], v_ref: float, duration_s: float, diverged: bool,

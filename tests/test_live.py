@@ -40,6 +40,11 @@ def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
     np.testing.assert_allclose(i_live, sim["i"], rtol=1e-9, atol=1e-9)
     cmds = read_topic(out, "/cmd")
     np.testing.assert_allclose([c["du_dt"] for c in cmds], sim["du_dt"], rtol=1e-9, atol=1e-9)
+    # the daemon's own log replays bit for bit
+    from clients.replay import replay
+
+    r = replay(res["daemon_log"], progress=False)
+    assert r["identical"] and r["compared"] == 500
 
 
 @pytest.fixture
@@ -123,6 +128,7 @@ def test_sigterm_stops_the_daemon_within_a_second_and_it_reports(tmp_path):
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     comp, _plant, _load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=2000.0)
     comp["loop"]["trigger"] = "clock"
+    comp["log_dir"] = str(tmp_path / "logs")
     path = tmp_path / "c.toml"
     path.write_text(_toml(comp))
     stats = tmp_path / "status.json"
@@ -144,7 +150,12 @@ def test_sigterm_stops_the_daemon_within_a_second_and_it_reports(tmp_path):
         assert time.monotonic() - t0 < 1.0 + 0.5  # one period plus process teardown
         assert p.returncode == 0
         assert json.loads(out.strip().splitlines()[-1])["loop"]["ticks"] > 0
-        assert json.loads(stats.read_text())["state"] == "shutdown"
+        status = json.loads(stats.read_text())
+        assert status["state"] == "shutdown"
+        # the log was closed: it has a summary, and its channels are there
+        with open(status["logging"]["path"], "rb") as f:
+            summary = make_reader(f).get_summary()
+        assert summary is not None and any(c.topic.endswith("/cmd") for c in summary.channels.values())
     finally:
         if p.poll() is None:
             p.kill()

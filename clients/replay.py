@@ -1,0 +1,135 @@
+"""energyctl replay: feed a log's recorded inputs through the same core, sample by sample, no clock.
+
+A log (from the daemon or from ``energyctl sim --out``) holds, per tick, the measurement (``.../meas``),
+what else the core was given (``.../z_in``: P^{r,in}, dP^{r,in}/dt, whether it stepped) and what it
+answered (``.../cmd``), plus config changes (``.../events``, kind "config", applied before the seq
+they name) and a ``core`` metadata record (controller config, model, period, delay). Replay rebuilds
+the core from that record and compares every du/dt with ``==``: bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from mcap.reader import make_reader
+
+from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, scenario_from_dict
+from service.core import ControlCore
+from service.types import Incoming, Sample
+
+
+class ReplayError(RuntimeError):
+    pass
+
+
+def read_log(path: str | Path) -> tuple[dict, dict[int, dict], dict[int, dict], dict[int, dict], dict[int, list]]:
+    """(core metadata, meas by seq, z_in by seq, cmd by seq, config events by seq); reads in file order,
+    so a log whose writer was killed (no summary) still replays up to its last complete chunk."""
+    meas: dict[int, dict] = {}
+    zin: dict[int, dict] = {}
+    cmd: dict[int, dict] = {}
+    cfg_events: dict[int, list] = {}
+    core = None
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        for rec in reader.iter_metadata():
+            if rec.name == "core":
+                core = json.loads(rec.metadata["json"])
+        f.seek(0)
+        reader = make_reader(f)
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            leaf = channel.topic.rsplit("/", 1)[-1]
+            if leaf not in ("meas", "z_in", "cmd", "events"):
+                continue
+            d = json.loads(message.data)
+            if leaf == "meas":
+                meas[d["seq"]] = d
+            elif leaf == "z_in":
+                zin[d["seq"]] = d
+            elif leaf == "cmd":
+                cmd[d["seq"]] = d
+            elif d.get("kind") == "config":
+                cfg_events.setdefault(d["seq"], []).append(json.loads(d["detail"]))
+    if core is None:
+        raise ReplayError(f"{path}: no 'core' metadata record (not an energyctl log, or written before replay support)")
+    return core, meas, zin, cmd, cfg_events
+
+
+def replay(path: str | Path, overrides: list[str] | None = None, controller: str | None = None,
+           out: str | None = None, progress: bool = True) -> dict:
+    t0 = time.perf_counter()
+    core_meta, meas, zin, cmd, cfg_events = read_log(path)
+    ovs = list(overrides or [])
+    if controller:
+        ovs.append(f'controller.kind="{controller}"')
+    what_if = bool(ovs)
+    ctl = _controller(core_meta["controller"], ovs)
+    model = scenario_from_dict({"model": core_meta["model"]}).model
+    core = ControlCore(ctl, model, core_meta["period_s"], core_meta["delay_samples"])
+    seqs = sorted(s for s in meas if s in zin)
+    first = None
+    replayed: list[tuple] = []
+    n = len(seqs)
+    step_report = max(1, n // 20)
+    for j, seq in enumerate(seqs):
+        for c in cfg_events.get(seq, []):
+            if not what_if:
+                core.set_gains(ControllerConfig.model_validate(c))
+        m, z = meas[seq], zin[seq]
+        if z["stepped"]:
+            o = core.step(Sample(seq, m["t"], m["i"], m["v"], m["u"], m["i_load"]),
+                          Incoming(z["P_r_in"], z["P_r_in_dot"]))
+            du = o.du_dt
+        else:
+            du = 0.0
+        replayed.append((seq, m["t"], du))
+        logged = cmd.get(seq)
+        if first is None and not what_if and logged is not None and logged["du_dt"] != du:
+            first = {"seq": seq, "t": m["t"], "field": "du_dt", "logged": logged["du_dt"], "replayed": du}
+        if progress and n > 20_000 and j % step_report == 0:
+            sys.stderr.write(f"\rreplay {100 * j // n:3d} %")
+            sys.stderr.flush()
+    if progress and n > 20_000:
+        sys.stderr.write("\rreplay 100 %\n")
+    wall = time.perf_counter() - t0
+    span = (meas[seqs[-1]]["t"] - meas[seqs[0]]["t"]) if seqs else 0.0
+    res = {"log": str(path), "ticks": n, "compared": sum(1 for s in seqs if s in cmd) if not what_if else 0,
+           "identical": first is None and not what_if, "first_divergence": first, "wall_s": wall,
+           "log_span_s": span, "speed_x_realtime": span / wall if wall > 0 else None}
+    if out:
+        _write(out, core_meta, ctl, replayed, meas, zin)
+        res["out"] = out
+    return res
+
+
+def _controller(base: dict, overrides: list[str]) -> ControllerConfig:
+    try:
+        data = apply_overrides({"controller": base}, [o if o.startswith("controller.") else f"controller.{o}"
+                                                      for o in overrides])
+        return scenario_from_dict(data).controller
+    except ScenarioError:
+        raise
+
+
+def _write(out: str, core_meta: dict, ctl: ControllerConfig, replayed, meas, zin) -> None:
+    from schemas.codec import CMD, MEAS
+    from schemas.messages import TickInput
+    from service.core import core_metadata
+    from service.recorder import McapFile
+
+    f = McapFile(out)
+    model = scenario_from_dict({"model": core_meta["model"]}).model
+    f.metadata("core", {"json": core_metadata(ctl, model, core_meta["period_s"], core_meta["delay_samples"])})
+    f.metadata("replay", {"json": json.dumps({"what_if_of": core_meta})})
+    for leaf, schema in (("meas", "energyctl.Measurement"), ("z_in", "energyctl.TickInput"),
+                         ("cmd", "energyctl.Command")):
+        f.channel(f"replay/{leaf}", schema)
+    zf = tuple(TickInput.model_fields)
+    for seq, t, du in replayed:
+        f.add("replay/meas", t, {k: meas[seq][k] for k in MEAS.fields})
+        f.add("replay/z_in", t, {k: zin[seq][k] for k in zf})
+        f.add("replay/cmd", t, dict(zip(CMD.fields, (seq, t, du, False), strict=True)))
+    f.close()
