@@ -380,6 +380,35 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0 if (res["identical"] or args.out) else 1
 
 
+def cmd_log(args: argparse.Namespace) -> int:
+    from .logtools import info, recover
+
+    try:
+        if args.action == "info":
+            res = info(args.log)
+            if args.json:
+                print(json.dumps(res))
+            else:
+                state = "complete" if res["complete"] else f"TRUNCATED ({res['truncated_at']})"
+                print(f"{res['path']}: {state}, {res['messages']} messages over {res['duration_s']:.3f} s, "
+                      f"recorder drops {sum(res['drops'].values()) if res['drops'] else 0}")
+                print(render(["channel", "messages", "bytes"],
+                             [[t, str(c["messages"]), str(c["bytes"])] for t, c in res["channels"].items()]))
+                for name in ("config", "scenario", "core", "build"):
+                    if name in res:
+                        print(f"{name}: {json.dumps(res[name])[:400]}")
+        else:
+            if not args.fixed:
+                raise ScenarioError("log recover: give BROKEN.mcap FIXED.mcap")
+            res = recover(args.log, args.fixed)
+            print(f"recovered {res['messages']} messages into {res['to']}"
+                  + ("" if not res["was_complete"] else " (the source was already complete)"))
+    except OSError as e:
+        print(f"energyctl log: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def cmd_schema(args: argparse.Namespace) -> int:
     from schemas.messages import write_json_schemas
 
@@ -519,6 +548,14 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=cmd_replay)
 
+    lg = sub.add_parser("log", help="'info LOG.mcap': channels, counts, duration, drops, config; "
+                                    "'recover BROKEN.mcap FIXED.mcap': rewrite a cut-off log with a summary")
+    lg.add_argument("action", choices=["info", "recover"])
+    lg.add_argument("log", metavar="LOG.mcap")
+    lg.add_argument("fixed", nargs="?", metavar="FIXED.mcap")
+    lg.add_argument("--json", action="store_true")
+    lg.set_defaults(func=cmd_log)
+
     g = sub.add_parser("schema", help="write JSON Schemas of the message and scenario models")
     g.add_argument("--out", default="schemas/json")
     g.set_defaults(func=cmd_schema)
@@ -535,6 +572,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("energyctl: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # e.g. piped into head
+        return 0
 
 
 if __name__ == "__main__":

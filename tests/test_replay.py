@@ -35,3 +35,52 @@ def test_what_if_writes_a_new_log_that_itself_replays(tmp_path):
     again = replay(what_if, progress=False)
     assert again["identical"] and again["compared"] == 300
     assert main(["replay", str(log), "--set", "controller.K_per_s=500.0"]) == 2  # a what-if needs --out
+
+
+WRITER = """
+import sys, time
+from schemas.messages import TickInput
+from service.recorder import Recorder
+path, n = sys.argv[1], int(sys.argv[2])
+fields = tuple(TickInput.model_fields)
+rec = Recorder(path, {"x/z_in": ("energyctl.TickInput", fields)}, {"core": {"json": "{}"}}, chunk_size=65536)
+for k in range(n):
+    rec.offer("x/z_in", k * 1e-4, (k, k * 1e-4, -1200.0 - k * 1e-3, 0.5 * k, True))
+while rec.written < n:
+    time.sleep(0.005)
+print(rec.written, flush=True)
+time.sleep(60)  # killed here, before close()
+"""
+
+
+def test_a_killed_writer_loses_at_most_its_last_chunk_and_recover_completes_the_file(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    from clients.logtools import info, recover
+
+    script = tmp_path / "writer.py"
+    script.write_text(WRITER)
+    log = tmp_path / "killed.mcap"
+    n = 20_000
+    p = subprocess.Popen([sys.executable, str(script), str(log), str(n)], stdout=subprocess.PIPE, text=True,
+                         cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    try:
+        written = int(p.stdout.readline())
+    finally:
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+    assert written == n
+    got = info(log)
+    assert not got["complete"]
+    kept = got["messages"]
+    per_message = got["channels"]["x/z_in"]["bytes"] / kept + 31  # payload + message record overhead
+    assert n - kept <= 65536 / per_message + 1  # at most the last (unfinished) chunk is lost
+    assert kept > n / 2
+    fixed = tmp_path / "fixed.mcap"
+    assert recover(log, fixed)["messages"] == kept
+    again = info(fixed)
+    assert again["complete"] and again["messages"] == kept

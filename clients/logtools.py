@@ -1,0 +1,86 @@
+"""energyctl log info / log recover: inspect any MCAP we write, including one whose writer was killed.
+
+Both read the file as a stream, record by record, without the summary, so a file cut short by
+SIGKILL yields everything up to its last complete chunk.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+
+def scan(path: str | Path, keep_messages: bool = False) -> dict:
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    counts: dict[str, int] = {}
+    nbytes: dict[str, int] = {}
+    metadata: dict[str, dict] = {}
+    messages: list[Message] = []
+    drops: dict = {}
+    t_first = t_last = None
+    complete = False
+    error = None
+    with open(path, "rb") as f:
+        try:
+            for rec in StreamReader(f, skip_magic=False).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message):
+                    topic = channels[rec.channel_id].topic
+                    counts[topic] = counts.get(topic, 0) + 1
+                    nbytes[topic] = nbytes.get(topic, 0) + len(rec.data)
+                    t_first = rec.log_time if t_first is None else min(t_first, rec.log_time)
+                    t_last = rec.log_time if t_last is None else max(t_last, rec.log_time)
+                    if topic.endswith("/events"):
+                        ev = json.loads(rec.data)
+                        if ev.get("kind") == "recorder_drops":
+                            drops = json.loads(ev["detail"])
+                    if keep_messages:
+                        messages.append(rec)
+                elif isinstance(rec, Metadata):
+                    metadata[rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Footer):
+                    complete = True
+        except Exception as e:  # noqa: BLE001 - a truncated file ends in a partial record
+            error = f"{type(e).__name__}: {e}"
+    return {"path": str(path), "complete": complete, "error": error, "schemas": schemas, "channels": channels,
+            "counts": counts, "bytes": nbytes, "metadata": metadata, "drops": drops, "messages": messages,
+            "duration_s": (t_last - t_first) / 1e9 if t_first is not None else 0.0}
+
+
+def info(path: str | Path) -> dict:
+    s = scan(path)
+    out = {"path": s["path"], "complete": s["complete"], "truncated_at": s["error"], "duration_s": s["duration_s"],
+           "channels": {t: {"messages": n, "bytes": s["bytes"][t]} for t, n in sorted(s["counts"].items())},
+           "messages": sum(s["counts"].values()), "drops": s["drops"]}
+    for name in ("config", "core", "scenario", "build", "metrics"):
+        if name in s["metadata"]:
+            m = s["metadata"][name]
+            out[name] = json.loads(m["json"]) if "json" in m else m
+    return out
+
+
+def recover(broken: str | Path, fixed: str | Path) -> dict:
+    """Rewrite every readable record of `broken` into a complete, indexed MCAP `fixed`."""
+    s = scan(broken, keep_messages=True)
+    with open(fixed, "wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD)
+        w.start(profile="", library="energyctl log recover")
+        sid = {old: w.register_schema(sc.name, sc.encoding, sc.data) for old, sc in s["schemas"].items()}
+        cid = {old: w.register_channel(ch.topic, ch.message_encoding, sid.get(ch.schema_id, 0), ch.metadata)
+               for old, ch in s["channels"].items()}
+        for name, data in s["metadata"].items():
+            w.add_metadata(name, data)
+        w.add_metadata("recovered", {"from": str(broken), "was_complete": str(s["complete"]),
+                                     "truncated_at": str(s["error"])})
+        for m in s["messages"]:
+            w.add_message(cid[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
+        w.finish()
+    return {"from": str(broken), "to": str(fixed), "messages": len(s["messages"]), "was_complete": s["complete"]}
