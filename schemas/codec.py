@@ -14,7 +14,7 @@ from typing import get_args
 
 from pydantic import BaseModel
 
-from .messages import Command, Interaction, Measurement
+from .messages import Command, Estimate, Interaction, Measurement, TickInput
 
 VERSION = 1
 _TYPE_CODES = {int: "Q", float: "d", bool: "B"}
@@ -72,7 +72,21 @@ class Codec:
     def to_dict(self, vals: tuple) -> dict:
         return dict(zip(self.fields, vals, strict=True))
 
+    def json_template(self) -> str:
+        """A %-format string giving the same JSON as json.dumps(to_dict(vals)) for finite values
+        (Python's float repr is the JSON float text); bools must be passed as 'true'/'false'."""
+        codes = {"Q": "%d", "d": "%r", "B": "%s"}
+        fmt = self.struct.format.lstrip("<")[2:]
+        return "{" + ",".join(f'"{f}":{codes[c]}' for f, c in zip(self.fields, fmt, strict=True)) + "}"
+
+    @property
+    def bool_positions(self) -> tuple[int, ...]:
+        fmt = self.struct.format.lstrip("<")[2:]
+        return tuple(k for k, c in enumerate(fmt) if c == "B")
+
 
 MEAS = Codec(Measurement, 0xE1)
 CMD = Codec(Command, 0xC1)
 Z = Codec(Interaction, 0x21)
+TICK_IN = Codec(TickInput, 0x71)
+EST = Codec(Estimate, 0x51)

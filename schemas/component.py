@@ -85,7 +85,8 @@ class ComponentConfig(Named):
     plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
     log_dir: str | None = Field(default=None, description="record to <log_dir>/<id>-<UTC time>.mcap (off the loop)")
     log_est_every: Annotated[int, Field(ge=1, le=100000)] = Field(default=10, description="estimator record decimation")
-    log_queue: Annotated[int, Field(ge=100, le=10_000_000)] = 200_000
+    log_queue: Annotated[int, Field(ge=1024, le=4_194_304)] = Field(
+        default=131_072, description="recorder ring slots (128 B each); full = counted drop, never a wait")
 
 
 class PlantPeerConfig(Named):

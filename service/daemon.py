@@ -137,25 +137,24 @@ class Daemon:
     def _open_recorder(self):
         from datetime import UTC, datetime
 
-        from schemas.messages import Estimate, Event, TickInput
+        from schemas.codec import EST, TICK_IN
 
-        from .recorder import Recorder, git_revision
+        from .recorder import git_revision
+        from .shmlog import RingRecorder
 
         c = self.cfg
         base = f"{c.prefix}/{c.id}"
         self.t_meas, self.t_cmd, self.t_zin = f"{base}/meas", f"{base}/cmd", f"{base}/z_in"
         self.t_zout, self.t_est, self.t_ev = f"{base}/z_out", f"{base}/est", f"{base}/events"
-        topics = {self.t_meas: ("energyctl.Measurement", MEAS.fields), self.t_cmd: ("energyctl.Command", CMD.fields),
-                  self.t_zin: ("energyctl.TickInput", tuple(TickInput.model_fields)),
-                  self.t_zout: ("energyctl.Interaction", Z.fields),
-                  self.t_est: ("energyctl.Estimate", tuple(Estimate.model_fields)),
-                  self.t_ev: ("energyctl.Event", tuple(Event.model_fields))}
+        topics = {self.t_meas: ("energyctl.Measurement", MEAS), self.t_cmd: ("energyctl.Command", CMD),
+                  self.t_zin: ("energyctl.TickInput", TICK_IN), self.t_zout: ("energyctl.Interaction", Z),
+                  self.t_est: ("energyctl.Estimate", EST), self.t_ev: ("energyctl.Event", None)}
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
         path = f"{c.log_dir}/{c.id}-{stamp}.mcap"
         meta = {"config": {"json": c.model_dump_json()}, "core": {"json": core_metadata(
             self.core.cfg, c.model, self.period_s, self.core.d)}, "build": {"git": git_revision()}}
         self.log_path = path
-        return Recorder(path, topics, meta, maxsize=c.log_queue)
+        return RingRecorder(path, topics, meta, slots=c.log_queue)
 
     def close(self) -> None:
         self.state = "shutdown"

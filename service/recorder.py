@@ -47,11 +47,14 @@ class McapFile:
         return cid
 
     def add(self, topic: str, t_s: float, payload: dict) -> None:
+        self.add_raw(topic, t_s, json.dumps(payload, separators=(",", ":")).encode())
+
+    def add_raw(self, topic: str, t_s: float, data: bytes) -> None:
+        """A message whose JSON text is already encoded."""
         ns = int(round(t_s * 1e9))
         seq = self._seq[topic]
         self._seq[topic] = seq + 1
-        self._w.add_message(self._channels[topic], log_time=ns, publish_time=ns, sequence=seq,
-                            data=json.dumps(payload, separators=(",", ":")).encode())
+        self._w.add_message(self._channels[topic], log_time=ns, publish_time=ns, sequence=seq, data=data)
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
         self._w.add_metadata(name, data)
@@ -103,74 +106,3 @@ def write_trace_mcap(path: str | Path, tr: dict, metadata: dict[str, dict[str, s
                                      "P_l": cols["P_l"][k]})
     f.close()
     return Path(path)
-
-
-class Recorder:
-    """MCAP writing off the loop thread, behind a bounded queue.
-
-    ``offer(topic, t, values)`` is what the loop calls: it puts a tuple (no encoding, no I/O) and
-    never blocks; when the queue is full the message is dropped and counted per topic, and the counts
-    are written as ``recorder_drops`` events. The writer thread encodes JSON and writes zstd chunks.
-    ``close()`` drains the queue and finishes the file (summary and index), so a stopped process
-    leaves a complete MCAP.
-    """
-
-    def __init__(self, path: str | Path, topics: dict[str, tuple[str, tuple[str, ...]]],
-                 metadata: dict[str, dict[str, str]], maxsize: int = 100_000, chunk_size: int = 1 << 20):
-        import queue
-        import threading
-
-        self.path = Path(path)
-        self._file = McapFile(self.path, chunk_size=chunk_size)
-        for name, data in metadata.items():
-            self._file.metadata(name, {**data, "version": __version__})
-        self._fields = {}
-        for topic, (schema, fields) in topics.items():
-            self._file.channel(topic, schema)
-            self._fields[topic] = fields
-        self._q: queue.Queue = queue.Queue(maxsize)
-        self._full = queue.Full
-        self.drops: dict[str, int] = {}
-        self.written = 0
-        self.error: str | None = None
-        self._events_topic = next((t for t, (s, _) in topics.items() if s == "energyctl.Event"), None)
-        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
-        self._thread.start()
-
-    def offer(self, topic: str, t: float, values: tuple) -> None:
-        try:
-            self._q.put_nowait((topic, t, values))
-        except self._full:
-            self.drops[topic] = self.drops.get(topic, 0) + 1
-
-    def _run(self) -> None:
-        get, f, fields = self._q.get, self._file, self._fields
-        reported = 0
-        while True:
-            item = get()
-            if item is None:
-                break
-            topic, t, values = item
-            if self.error is not None:
-                continue  # keep draining so the loop never blocks; the file is already broken
-            try:
-                f.add(topic, t, dict(zip(fields[topic], values, strict=True)))
-                self.written += 1
-                n_drops = sum(self.drops.values())
-                if n_drops != reported and self._events_topic:
-                    reported = n_drops
-                    f.add(self._events_topic, t, {"t": t, "seq": 0, "kind": "recorder_drops",
-                                                  "detail": json.dumps(self.drops)})
-            except Exception as e:  # noqa: BLE001 - disk full, permissions: control goes on
-                self.error = f"{type(e).__name__}: {e}"
-
-    def close(self) -> None:
-        self._q.put(None)
-        self._thread.join()
-        try:
-            if self._events_topic and self.drops:
-                self._file.add(self._events_topic, 0.0, {"t": 0.0, "seq": 0, "kind": "recorder_drops",
-                                                         "detail": json.dumps(self.drops)})
-            self._file.close()
-        except Exception as e:  # noqa: BLE001
-            self.error = self.error or f"{type(e).__name__}: {e}"

@@ -39,24 +39,28 @@ def test_what_if_writes_a_new_log_that_itself_replays(tmp_path):
 
 WRITER = """
 import sys, time
-from schemas.messages import TickInput
-from service.recorder import Recorder
-path, n = sys.argv[1], int(sys.argv[2])
-fields = tuple(TickInput.model_fields)
-rec = Recorder(path, {"x/z_in": ("energyctl.TickInput", fields)}, {"core": {"json": "{}"}}, chunk_size=65536)
-for k in range(n):
-    rec.offer("x/z_in", k * 1e-4, (k, k * 1e-4, -1200.0 - k * 1e-3, 0.5 * k, True))
-while rec.written < n:
-    time.sleep(0.005)
-print(rec.written, flush=True)
-time.sleep(60)  # killed here, before close()
+from schemas.codec import TICK_IN
+from service.shmlog import RingRecorder
+if __name__ == "__main__":  # the recorder process is spawned: it re-imports this module
+    path, n = sys.argv[1], int(sys.argv[2])
+    rec = RingRecorder(path, {"x/z_in": ("energyctl.TickInput", TICK_IN)}, {"core": {"json": "{}"}},
+                       chunk_size=65536)
+    for k in range(n):
+        rec.offer("x/z_in", k * 1e-4, (k, k * 1e-4, -1200.0 - k * 1e-3, 0.5 * k, True))
+    deadline = time.monotonic() + 30
+    while rec.written < n and time.monotonic() < deadline:
+        time.sleep(0.005)
+    print(rec.pid, rec.written, flush=True)
+    time.sleep(60)  # the test kills the writer process before close()
 """
 
 
 def test_a_killed_writer_loses_at_most_its_last_chunk_and_recover_completes_the_file(tmp_path):
+    import os
     import signal
     import subprocess
     import sys
+    import time
 
     from conftest import ROOT
 
@@ -69,11 +73,13 @@ def test_a_killed_writer_loses_at_most_its_last_chunk_and_recover_completes_the_
     p = subprocess.Popen([sys.executable, str(script), str(log), str(n)], stdout=subprocess.PIPE, text=True,
                          cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
     try:
-        written = int(p.stdout.readline())
+        writer_pid, taken = map(int, p.stdout.readline().split())
+        assert taken == n
+        os.kill(writer_pid, signal.SIGKILL)  # the process writing the MCAP dies mid-file
+        time.sleep(0.2)
     finally:
         p.send_signal(signal.SIGKILL)
         p.wait()
-    assert written == n
     got = info(log)
     assert not got["complete"]
     kept = got["messages"]

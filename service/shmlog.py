@@ -1,0 +1,182 @@
+"""Recorder in its own process, fed through a shared-memory ring (single producer, single consumer).
+
+The loop thread packs each message into a fixed 128-byte slot with ``struct.pack_into`` (the binary
+codecs of schemas/codec.py) and advances the write index; it never blocks, and a full ring is a
+counted drop. A spawned writer process polls the ring, unpacks, encodes JSON and writes the MCAP,
+so neither encoding nor I/O nor the writer's GIL share the loop's process. Events (rare, variable
+length) go through a multiprocessing queue. x86 stores are not reordered with other stores, and the
+slot is written before the index that publishes it.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import struct
+import time
+from multiprocessing import shared_memory
+from pathlib import Path
+
+from schemas.codec import Codec
+
+SLOT = 128
+_HDR = struct.Struct("<QQQ")  # write index, read index, stop flag
+_SLOT_HDR = struct.Struct("<Bd")  # topic id, log time (s)
+
+
+class RingRecorder:
+    """Same interface as service.recorder.Recorder: offer(topic, t, values) and close()."""
+
+    def __init__(self, path: str | Path, topics: dict[str, tuple[str, Codec | None]],
+                 metadata: dict[str, dict[str, str]], slots: int = 1 << 17, chunk_size: int = 1 << 20):
+        self.path = str(path)
+        self.slots = slots
+        self._shm = shared_memory.SharedMemory(create=True, size=_HDR.size + slots * SLOT)
+        _HDR.pack_into(self._shm.buf, 0, 0, 0, 0)
+        self._codecs: dict[str, tuple[int, Codec]] = {}
+        spec = []
+        for k, (topic, (schema, codec)) in enumerate(topics.items()):
+            spec.append((topic, schema, codec.model.__module__ + ":" + codec.model.__name__ if codec else None,
+                         codec.magic if codec else 0))
+            if codec is not None:
+                assert _SLOT_HDR.size + codec.size <= SLOT, topic
+                self._codecs[topic] = (k, codec)
+        self._events_topic = next((t for t, (s, c) in topics.items() if c is None), None)
+        ctx = mp.get_context("spawn")
+        self._events = ctx.Queue()
+        self._result = ctx.Queue()
+        self._proc = ctx.Process(target=_writer, name="energyctl-recorder", daemon=True,
+                                 args=(self._shm.name, slots, self.path, spec, metadata, chunk_size,
+                                       self._events, self._result))
+        self._proc.start()
+        self._buf = self._shm.buf
+        self._w = 0
+        self.drops: dict[str, int] = {}
+        self._written_final: int | None = None
+        self.error: str | None = None
+
+    @property
+    def written(self) -> int:
+        """Ring messages the writer process has taken (events included once closed)."""
+        if self._written_final is not None:
+            return self._written_final
+        return _HDR.unpack_from(self._buf, 0)[1]
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
+    def offer(self, topic: str, t: float, values: tuple) -> None:
+        ent = self._codecs.get(topic)
+        if ent is None:
+            if topic == self._events_topic:
+                self._events.put((t, values))
+            return
+        w = self._w
+        r = _HDR.unpack_from(self._buf, 0)[1]
+        if w - r >= self.slots:
+            self.drops[topic] = self.drops.get(topic, 0) + 1
+            return
+        off = _HDR.size + (w % self.slots) * SLOT
+        _SLOT_HDR.pack_into(self._buf, off, ent[0], t)
+        ent[1].struct.pack_into(self._buf, off + _SLOT_HDR.size, ent[1].magic, 1, *values)
+        self._w = w + 1
+        struct.pack_into("<Q", self._buf, 0, w + 1)
+
+    def close(self) -> None:
+        if self.drops and self._events_topic:
+            self._events.put((0.0, (0.0, 0, "recorder_drops", json.dumps(self.drops))))
+        struct.pack_into("<Q", self._buf, 16, 1)
+        self._proc.join(timeout=30)
+        try:
+            res = self._result.get(timeout=1)
+            self._written_final, self.error = res["written"], res["error"]
+        except Exception:  # noqa: BLE001 - the writer died
+            self.error = self.error or f"recorder process ended with code {self._proc.exitcode}"
+        self._buf = None
+        self._shm.close()
+        self._shm.unlink()
+
+
+def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -> None:
+    import importlib
+    from queue import Empty
+
+    from service.recorder import McapFile
+
+    shm = shared_memory.SharedMemory(name=shm_name)
+    buf = shm.buf
+    written, error = 0, None
+    f = McapFile(path, chunk_size=chunk_size)
+    for name, data in metadata.items():
+        f.metadata(name, data)
+    topics, codecs, fields, templates, bools = [], [], [], [], []
+    ev_topic = None
+    for topic, schema, model_ref, magic in spec:
+        f.channel(topic, schema)
+        topics.append(topic)
+        if model_ref is None:
+            codecs.append(None)
+            fields.append(None)
+            templates.append(None)
+            bools.append(())
+            ev_topic = topic
+            continue
+        mod, name = model_ref.split(":")
+        codec = Codec(getattr(importlib.import_module(mod), name), magic)
+        codecs.append(codec)
+        fields.append(codec.fields)
+        templates.append(codec.json_template())
+        bools.append(codec.bool_positions)
+    from schemas.messages import Event
+
+    ev_fields = tuple(Event.model_fields)
+    import os
+
+    parent = os.getppid()
+    r = 0
+    try:
+        while True:
+            w, _, stop = _HDR.unpack_from(buf, 0)
+            if os.getppid() != parent:  # the process we record for died (SIGKILL): finish the file
+                stop = 1
+                w = _HDR.unpack_from(buf, 0)[0]
+            if r == w:
+                try:
+                    while True:
+                        t, vals = events.get_nowait()
+                        if ev_topic:
+                            f.add(ev_topic, t, dict(zip(ev_fields, vals, strict=True)))
+                            written += 1
+                except Empty:
+                    pass
+                if stop:
+                    break
+                time.sleep(0.0005)
+                continue
+            while r < w:
+                off = _HDR.size + (r % slots) * SLOT
+                k, t = _SLOT_HDR.unpack_from(buf, off)
+                c = codecs[k]
+                vals = c.struct.unpack_from(buf, off + _SLOT_HDR.size)[2:]
+                if bools[k]:
+                    vals = tuple(("true" if v else "false") if j in bools[k] else v for j, v in enumerate(vals))
+                text = templates[k] % vals
+                if "n" in text.replace("true", "").replace("false", ""):  # nan/inf: not JSON text
+                    f.add(topics[k], t, dict(zip(fields[k], c.struct.unpack_from(buf, off + _SLOT_HDR.size)[2:],
+                                                 strict=True)))
+                else:
+                    f.add_raw(topics[k], t, text.encode())
+                written += 1
+                r += 1
+            struct.pack_into("<Q", buf, 8, r)
+    except Exception as e:  # noqa: BLE001 - report, keep what was written
+        error = f"{type(e).__name__}: {e}"
+    finally:
+        try:
+            f.close()
+        except Exception as e:  # noqa: BLE001
+            error = error or f"{type(e).__name__}: {e}"
+        buf = None
+        shm.close()
+        result.put({"written": written, "error": error})
