@@ -76,6 +76,7 @@ class Codec:
         """A %-format string giving the same JSON as json.dumps(to_dict(vals)) for finite values
         (Python's float repr is the JSON float text); bools must be passed as 'true'/'false'."""
         codes = {"Q": "%d", "d": "%r", "B": "%s"}
+        assert not any("nan" in f or "inf" in f for f in self.fields), "the recorder detects nan/inf by these tokens"
         fmt = self.struct.format.lstrip("<")[2:]
         return "{" + ",".join(f'"{f}":{codes[c]}' for f, c in zip(self.fields, fmt, strict=True)) + "}"
 

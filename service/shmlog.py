@@ -162,7 +162,7 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -
                 if bools[k]:
                     vals = tuple(("true" if v else "false") if j in bools[k] else v for j, v in enumerate(vals))
                 text = templates[k] % vals
-                if "n" in text.replace("true", "").replace("false", ""):  # nan/inf: not JSON text
+                if "nan" in text or "inf" in text:  # non-finite floats are not JSON text (no field name has these)
                     f.add(topics[k], t, dict(zip(fields[k], c.struct.unpack_from(buf, off + _SLOT_HDR.size)[2:],
                                                  strict=True)))
                 else:

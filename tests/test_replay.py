@@ -90,3 +90,25 @@ def test_a_killed_writer_loses_at_most_its_last_chunk_and_recover_completes_the_
     assert recover(log, fixed)["messages"] == kept
     again = info(fixed)
     assert again["complete"] and again["messages"] == kept
+
+
+def test_logs_open_in_the_typescript_mcap_reader(tmp_path):
+    """Foxglove's MCAP library (npm @mcap/core) reads our files: indexed, and as a CRC-checked stream."""
+    import json
+    import shutil
+    import subprocess
+
+    from conftest import ROOT
+
+    js = ROOT / "tests" / "js"
+    node = shutil.which("node")
+    assert node and (js / "node_modules" / "@mcap" / "core").exists(), \
+        "run the README test command: it installs tests/js (npm install --prefix tests/js)"
+    res = run(load_scenario(SCENARIOS / "paper-constant-load.toml", ["timing.duration_s=0.02"]))
+    log = tmp_path / "sim.mcap"
+    write_sim_mcap(log, res)
+    out = subprocess.run([node, str(js / "check_mcap.mjs"), str(log)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["messages"] == 5 * 200 and got["streamDone"] and got["schemaEncodings"] == ["jsonschema"]
+    assert "core" in got["metadata"] and got["sample"]["seq"] == 0
