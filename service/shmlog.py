@@ -169,6 +169,8 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -
                     f.add_raw(topics[k], t, text.encode())
                 written += 1
                 r += 1
+                if r & 0xFF == 0:  # free slots as we go, not only after a (possibly long) backlog
+                    struct.pack_into("<Q", buf, 8, r)
             struct.pack_into("<Q", buf, 8, r)
     except Exception as e:  # noqa: BLE001 - report, keep what was written
         error = f"{type(e).__name__}: {e}"
