@@ -106,7 +106,8 @@ def bench_paced(seconds: float, rate_hz: float, path: Path | None) -> dict:
     wall = time.perf_counter() - t0
     size = path.stat().st_size
     return {"rate_hz": rate_hz, "seconds": seconds, "ticks": stats["ticks"], "overruns": stats["overruns"],
-            "overrun_pct": 100.0 * stats["overruns"] / max(1, stats["ticks"]), "drops": sum(rec.drops.values()),
+            "overrun_pct": 100.0 * stats["overruns"] / max(1, stats["ticks"]),
+            "drops": sum(rec.drops.values()), "ring_slots": rec.slots,
             "written": rec.written, "msgs_per_s": rec.written / loop_wall, "bytes_per_s": size / loop_wall,
             "close_s": wall - loop_wall, "file_bytes": size, "recorder_error": rec.error}
 

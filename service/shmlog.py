@@ -4,8 +4,13 @@ The loop thread packs each message into a fixed 128-byte slot with ``struct.pack
 codecs of schemas/codec.py) and advances the write index; it never blocks, and a full ring is a
 counted drop. A spawned writer process polls the ring, unpacks, encodes JSON and writes the MCAP,
 so neither encoding nor I/O nor the writer's GIL share the loop's process. Events (rare, variable
-length) go through a multiprocessing queue. x86 stores are not reordered with other stores, and the
-slot is written before the index that publishes it.
+length) go through a multiprocessing queue.
+
+Synchronisation is one byte per slot (a single-byte store is never torn): the producer fills a free
+slot (flag 0) and then sets its flag to 1; the writer reads a full slot and then clears the flag.
+x86 does not reorder stores with stores or loads with loads, so a set flag means a complete
+payload. (A first version shared 64-bit read/write indices; those reads tore across processes and
+showed phantom backlogs and false drops.)
 """
 
 from __future__ import annotations
@@ -20,8 +25,12 @@ from pathlib import Path
 from schemas.codec import Codec
 
 SLOT = 128
-_HDR = struct.Struct("<QQQ")  # write index, read index, stop flag
-_SLOT_HDR = struct.Struct("<Bd")  # topic id, log time (s)
+_HDR = struct.Struct("<QQQ")  # (unused), messages taken by the writer (statistics only), stop flag
+_SLOT_HDR = struct.Struct("<Bd")  # topic id, log time (s); after the one-byte slot flag
+_PAYLOAD = 1 + _SLOT_HDR.size
+
+
+_IDX = struct.Struct("<Q")
 
 
 class RingRecorder:
@@ -39,7 +48,7 @@ class RingRecorder:
             spec.append((topic, schema, codec.model.__module__ + ":" + codec.model.__name__ if codec else None,
                          codec.magic if codec else 0))
             if codec is not None:
-                assert _SLOT_HDR.size + codec.size <= SLOT, topic
+                assert _PAYLOAD + codec.size <= SLOT, topic
                 self._codecs[topic] = (k, codec)
         self._events_topic = next((t for t, (s, c) in topics.items() if c is None), None)
         ctx = mp.get_context("spawn")
@@ -57,10 +66,10 @@ class RingRecorder:
 
     @property
     def written(self) -> int:
-        """Ring messages the writer process has taken (events included once closed)."""
+        """Messages the writer process has taken (a statistic; exact once closed)."""
         if self._written_final is not None:
             return self._written_final
-        return _HDR.unpack_from(self._buf, 0)[1]
+        return _IDX.unpack_from(self._buf, 8)[0]
 
     @property
     def pid(self) -> int | None:
@@ -73,20 +82,20 @@ class RingRecorder:
                 self._events.put((t, values))
             return
         w = self._w
-        r = _HDR.unpack_from(self._buf, 0)[1]
-        if w - r >= self.slots:
+        buf = self._buf
+        off = _HDR.size + (w % self.slots) * SLOT
+        if buf[off]:  # the writer has not emptied this slot: the ring is full
             self.drops[topic] = self.drops.get(topic, 0) + 1
             return
-        off = _HDR.size + (w % self.slots) * SLOT
-        _SLOT_HDR.pack_into(self._buf, off, ent[0], t)
-        ent[1].struct.pack_into(self._buf, off + _SLOT_HDR.size, ent[1].magic, 1, *values)
+        _SLOT_HDR.pack_into(buf, off + 1, ent[0], t)
+        ent[1].struct.pack_into(buf, off + _PAYLOAD, ent[1].magic, 1, *values)
+        buf[off] = 1  # publish: the payload is complete
         self._w = w + 1
-        struct.pack_into("<Q", self._buf, 0, w + 1)
 
     def close(self) -> None:
         if self.drops and self._events_topic:
             self._events.put((0.0, (0.0, 0, "recorder_drops", json.dumps(self.drops))))
-        struct.pack_into("<Q", self._buf, 16, 1)
+        self._buf[16] = 1  # stop
         self._proc.join(timeout=30)
         try:
             res = self._result.get(timeout=1)
@@ -137,41 +146,39 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -
     r = 0
     try:
         while True:
-            w, _, stop = _HDR.unpack_from(buf, 0)
-            if os.getppid() != parent:  # the process we record for died (SIGKILL): finish the file
-                stop = 1
-                w = _HDR.unpack_from(buf, 0)[0]
-            if r == w:
-                try:
-                    while True:
-                        t, vals = events.get_nowait()
-                        if ev_topic:
-                            f.add(ev_topic, t, dict(zip(ev_fields, vals, strict=True)))
-                            written += 1
-                except Empty:
-                    pass
-                if stop:
-                    break
-                time.sleep(0.0005)
-                continue
-            while r < w:
-                off = _HDR.size + (r % slots) * SLOT
-                k, t = _SLOT_HDR.unpack_from(buf, off)
+            off = _HDR.size + (r % slots) * SLOT
+            if buf[off]:  # a full slot
+                k, t = _SLOT_HDR.unpack_from(buf, off + 1)
                 c = codecs[k]
-                vals = c.struct.unpack_from(buf, off + _SLOT_HDR.size)[2:]
+                vals = c.struct.unpack_from(buf, off + _PAYLOAD)[2:]
+                buf[off] = 0  # free it
                 if bools[k]:
                     vals = tuple(("true" if v else "false") if j in bools[k] else v for j, v in enumerate(vals))
                 text = templates[k] % vals
                 if "nan" in text or "inf" in text:  # non-finite floats are not JSON text (no field name has these)
-                    f.add(topics[k], t, dict(zip(fields[k], c.struct.unpack_from(buf, off + _SLOT_HDR.size)[2:],
+                    f.add(topics[k], t, dict(zip(fields[k], c.struct.unpack_from(buf, off + _PAYLOAD)[2:],
                                                  strict=True)))
                 else:
                     f.add_raw(topics[k], t, text.encode())
                 written += 1
                 r += 1
-                if r & 0xFF == 0:  # free slots as we go, not only after a (possibly long) backlog
-                    struct.pack_into("<Q", buf, 8, r)
-            struct.pack_into("<Q", buf, 8, r)
+                if r & 0xFF == 0:
+                    _IDX.pack_into(buf, 8, r)
+                continue
+            _IDX.pack_into(buf, 8, r)
+            try:
+                while True:
+                    t, vals = events.get_nowait()
+                    if ev_topic:
+                        f.add(ev_topic, t, dict(zip(ev_fields, vals, strict=True)))
+                        written += 1
+            except Empty:
+                pass
+            if buf[16] or os.getppid() != parent:  # stopped, or the recorded process died: finish
+                if not buf[_HDR.size + (r % slots) * SLOT]:
+                    break
+                continue
+            time.sleep(0.0005)
     except Exception as e:  # noqa: BLE001 - report, keep what was written
         error = f"{type(e).__name__}: {e}"
     finally:
