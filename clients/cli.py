@@ -413,6 +413,18 @@ def cmd_log(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from .report import ReportError, report
+
+    try:
+        res = report(args.logs, args.out)
+    except (ReportError, OSError) as e:
+        print(f"energyctl report: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {', '.join(res['figures'])} and summary.md to {res['out']}")
+    return 0
+
+
 def cmd_schema(args: argparse.Namespace) -> int:
     from schemas.messages import write_json_schemas
 
@@ -561,6 +573,11 @@ def build_parser() -> argparse.ArgumentParser:
     lg.add_argument("fixed", nargs="?", metavar="FIXED.mcap")
     lg.add_argument("--json", action="store_true")
     lg.set_defaults(func=cmd_log)
+
+    re_ = sub.add_parser("report", help="PNG figures like the paper's and a Markdown summary (one log, or two)")
+    re_.add_argument("logs", nargs="+", metavar="LOG.mcap")
+    re_.add_argument("--out", default="report", help="output directory (default: %(default)s)")
+    re_.set_defaults(func=cmd_report)
 
     g = sub.add_parser("schema", help="write JSON Schemas of the message and scenario models")
     g.add_argument("--out", default="schemas/json")

@@ -69,3 +69,17 @@ def test_demo_regulates_and_writes_its_log(tmp_path, capsys):
     assert main(["demo", "--logs", str(tmp_path), "--set", "timing.duration_s=0.1"]) == 0
     assert "regulated" in capsys.readouterr().out
     assert len(list(tmp_path.glob("demo-*.mcap"))) == 1
+
+
+def test_report_writes_figures_and_a_summary_for_two_logs(tmp_path, capsys):
+    feas = str(SCENARIOS / "paper-feasibility.toml")
+    a, b = tmp_path / "fblc.mcap", tmp_path / "lqr.mcap"
+    assert main(["sim", feas, "--set", "timing.duration_s=0.5", "--out", str(a)]) == 0
+    assert main(["sim", feas, "--controller", "lqr", "--set", "timing.duration_s=0.5", "--out", str(b)]) == 0
+    out = tmp_path / "rep"
+    assert main(["report", str(a), str(b), "--out", str(out)]) == 0
+    for f in ("states.png", "energy.png", "interaction.png"):
+        assert (out / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = (out / "summary.md").read_text()
+    assert "| fblc |" in summary and "| lqr |" in summary and "![interaction.png]" in summary
+    assert main(["report", str(tmp_path / "missing.mcap")]) == 2

@@ -1,0 +1,193 @@
+"""energyctl report: PNG figures like the paper's and a Markdown summary, for one log or two side by side.
+
+Figures: states.png (i, v with the +-2 % band, u, du/dt), energy.png (y_z vs y_ref, u_z),
+interaction.png (outgoing vs incoming interaction variable, with the feasibility bands when the
+log carries its scenario). Works on simulator logs (true plant state) and daemon logs (measured).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .logtools import scan
+
+
+class ReportError(RuntimeError):
+    pass
+
+
+def load_series(path: str | Path) -> dict:
+    s = scan(path, keep_messages=True)
+    cols: dict[str, dict[str, list]] = {}
+    for m in s["messages"]:
+        leaf = s["channels"][m.channel_id].topic.rsplit("/", 1)[-1]
+        d = json.loads(m.data)
+        c = cols.setdefault(leaf, {})
+        for k, v in d.items():
+            if isinstance(v, int | float) and not isinstance(v, bool):
+                c.setdefault(k, []).append(float(v))
+    series = {leaf: {k: np.asarray(v) for k, v in c.items()} for leaf, c in cols.items()}
+    meta = {name: json.loads(m["json"]) for name, m in s["metadata"].items() if "json" in m}
+    v_ref = 80.0
+    for name in ("scenario", "config", "core"):
+        if name in meta and "controller" in meta[name]:
+            v_ref = meta[name]["controller"]["v_ref_V"]
+            break
+    if "meas" not in series and "plant" not in series:
+        raise ReportError(f"{path}: no measurement or plant channel")
+    return {"path": str(path), "name": Path(path).stem, "series": series, "meta": meta, "v_ref": v_ref,
+            "complete": s["complete"]}
+
+
+def state(log: dict) -> dict:
+    """The trajectory to plot: the true plant state if logged (simulation), else the measurements."""
+    return log["series"].get("plant") or log["series"]["meas"]
+
+
+def summary_metrics(log: dict) -> dict:
+    st, v_ref = state(log), log["v_ref"]
+    t, v = st["t"], st["v"]
+    dev = np.abs(v - v_ref)
+    out_idx = np.nonzero(dev > 0.02 * v_ref)[0]
+    settle = 0.0 if len(out_idx) == 0 else (None if out_idx[-1] == len(t) - 1 else float(t[out_idx[-1] + 1]))
+    cmd = log["series"].get("cmd", {}).get("du_dt", np.zeros(1))
+    tail = slice(int(len(t) * 0.9), len(t))
+    return {"settle_s": settle, "v_min": float(v.min()), "v_max": float(v.max()), "ss_error": float(dev[tail].mean()),
+            "rms_du_dt": float(np.sqrt(np.mean(cmd ** 2))), "max_abs_du_dt": float(np.abs(cmd).max()),
+            "duration_s": float(t[-1] - t[0]) if len(t) > 1 else 0.0,
+            "source": "plant (true state)" if "plant" in log["series"] else "measurements"}
+
+
+def feasibility_bands(log: dict):
+    """[(t0, t1, P_lo, P_hi, Q_lo, Q_hi)] from the log's scenario, or None."""
+    scn_d = log["meta"].get("scenario")
+    if not scn_d:
+        return None
+    from schemas.scenario import Scenario
+    from service.core import effective_gain
+    from service.feasibility import incoming_range, tau_prime
+    from service.profiles import Profile
+
+    scn = Scenario.model_validate(scn_d)
+    load = Profile(scn.load, scn.base_dir)
+    tp = tau_prime(scn.model.L_H, scn.model.R_ohm, effective_gain(scn.controller, scn.model))
+    W, m = scn.feasibility.window_s, scn.feasibility.forecast_margin
+    bands = []
+    k = 0
+    while k * W < scn.timing.duration_s:
+        t0, t1 = k * W, min((k + 1) * W, scn.timing.duration_s)
+        lo, hi, dlo, dhi = load.range_over(t0, t1)
+        span, dspan = max(abs(lo), abs(hi)) * m, max(abs(dlo), abs(dhi)) * m
+        bands.append((t0, t1, *incoming_range(lo - span, hi + span, dlo - dspan, dhi + dspan, tp,
+                                              scn.feasibility.literal_paper_range)))
+        k += 1
+    return bands
+
+
+def report(paths: list[str], out_dir: str) -> dict:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise ReportError("energyctl report needs matplotlib: python3 -m pip install 'energyctl[report]'") from None
+    if not 1 <= len(paths) <= 2:
+        raise ReportError("report takes one log, or two to compare")
+    logs = [load_series(p) for p in paths]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = []
+
+    fig, ax = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
+    for lg in logs:
+        st, cmd = state(lg), lg["series"].get("cmd", {})
+        ax[0].plot(st["t"], st["i"], label=lg["name"])
+        ax[1].plot(st["t"], st["v"], label=lg["name"])
+        ax[2].plot(st["t"], st["u"], label=lg["name"])
+        if "du_dt" in cmd:
+            ax[3].plot(cmd["t"], cmd["du_dt"], lw=0.6, label=lg["name"])
+    v_ref = logs[0]["v_ref"]
+    ax[1].axhspan(0.98 * v_ref, 1.02 * v_ref, color="g", alpha=0.12, label="±2 % of v_ref")
+    for a, lab in zip(ax, ("i (A)", "v (V)", "u (V)", "du/dt (V/s)"), strict=True):
+        a.set_ylabel(lab)
+        a.grid(alpha=0.3)
+    ax[1].legend(fontsize=8)
+    ax[3].set_xlabel("t (s)")
+    fig.suptitle("current, terminal voltage, source voltage, commanded rate")
+    fig.tight_layout()
+    fig.savefig(out / "states.png", dpi=110)
+    plt.close(fig)
+    figs.append("states.png")
+
+    if any("est" in lg["series"] for lg in logs):
+        fig, ax = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        for lg in logs:
+            e = lg["series"].get("est")
+            if e is None:
+                continue
+            ax[0].plot(e["t"], e["y_z"], label=f"y_z {lg['name']}")
+            ax[0].plot(e["t"], e["y_ref"], "--", label=f"y_ref {lg['name']}")
+            ax[1].plot(e["t"], e["u_z"], lw=0.6, label=lg["name"])
+        ax[0].set_ylabel("W")
+        ax[1].set_ylabel("u_z = Qdot^u (W/s)")
+        ax[1].set_xlabel("t (s)")
+        for a in ax:
+            a.grid(alpha=0.3)
+            a.legend(fontsize=8)
+        fig.suptitle("energy-space output and reference")
+        fig.tight_layout()
+        fig.savefig(out / "energy.png", dpi=110)
+        plt.close(fig)
+        figs.append("energy.png")
+
+        fig, ax = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        for lg in logs:
+            e, zin = lg["series"].get("est"), lg["series"].get("z_in")
+            if e is not None:
+                ax[0].plot(e["t"], e["P_r_out"], label=f"P^r,out {lg['name']}")
+                ax[1].plot(e["t"], e["Qdot_r_out"], lw=0.6, label=f"Qdot^r,out {lg['name']}")
+            if zin is not None:
+                ax[0].plot(zin["t"], zin["P_r_in"], "--", label=f"P^r,in {lg['name']}")
+        any_bands = False
+        for lg, color in zip(logs, ("tab:orange", "tab:purple"), strict=False):
+            bands = feasibility_bands(lg)  # each log's own: tau' depends on its controller's gain
+            for j, (t0, t1, plo, phi, qlo, qhi) in enumerate(bands or []):
+                lab = f"Z^r,in range {lg['name']}" if j == 0 else None
+                ax[0].fill_between([t0, t1], plo, phi, color=color, alpha=0.12, label=lab)
+                ax[1].fill_between([t0, t1], qlo, qhi, color=color, alpha=0.12, label=lab)
+                any_bands = True
+        ax[1].set_yscale("symlog", linthresh=1e3)
+        ax[0].set_ylabel("W")
+        ax[1].set_ylabel("W/s")
+        ax[1].set_xlabel("t (s)")
+        for a in ax:
+            a.grid(alpha=0.3)
+            a.legend(fontsize=8)
+        fig.suptitle("outgoing vs incoming interaction variable" + (" with feasibility bands" if any_bands else ""))
+        fig.tight_layout()
+        fig.savefig(out / "interaction.png", dpi=110)
+        plt.close(fig)
+        figs.append("interaction.png")
+
+    metrics = [(lg["name"], lg["meta"].get("metrics") or summary_metrics(lg)) for lg in logs]
+    keys = ["settle_s", "v_min", "v_max", "ss_error", "rms_du_dt", "max_abs_du_dt"]
+    lines = ["# energyctl report", "", *(f"- `{lg['path']}`" + ("" if lg["complete"] else " (cut off; recovered "
+                                                                  "up to its last complete chunk)") for lg in logs),
+             "", "| log | " + " | ".join(keys) + " |", "|" + " --- |" * (len(keys) + 1)]
+    for name, m in metrics:
+        lines.append(f"| {name} | " + " | ".join(_fmt(m.get(k)) for k in keys) + " |")
+    lines += ["", *(f"![{f}]({f})" for f in figs), ""]
+    (out / "summary.md").write_text("\n".join(lines))
+    return {"out": str(out), "figures": figs, "summary": str(out / "summary.md"), "metrics": dict(metrics)}
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "never"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
