@@ -112,3 +112,30 @@ def test_logs_open_in_the_typescript_mcap_reader(tmp_path):
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert got["messages"] == 5 * 200 and got["streamDone"] and got["schemaEncodings"] == ["jsonschema"]
     assert "core" in got["metadata"] and got["sample"]["seq"] == 0
+
+
+def test_foxglove_layout_plots_only_channels_the_daemon_writes(tmp_path):
+    """Every topic the shipped layout plots is a channel of a real daemon log (component id 'source')."""
+    import json
+    import re
+
+    from conftest import ROOT
+
+    from clients.live import run_live
+    from clients.logtools import info
+
+    layout = json.loads((ROOT / "foxglove" / "energyctl-daemon.layout.json").read_text())
+    text = json.dumps(layout["configById"])
+    wanted = set(re.findall(r'\\"(energyctl/source/[a-z_]+)\\"', text))
+    assert {"energyctl/source/meas", "energyctl/source/cmd", "energyctl/source/est"} <= wanted
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
+    assert sorted(leaves(layout["layout"])) == sorted(layout["configById"])
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml", ["timing.duration_s=0.02"])
+    res = run_live(scn, lockstep=True, rate_hz=None, out=str(tmp_path / "plant.mcap"), duration_s=None,
+                   workdir=str(tmp_path))
+    channels = set(info(res["daemon_log"])["channels"])
+    channels.add("energyctl/source/events")  # written only when something happens
+    assert wanted <= channels, wanted - channels
