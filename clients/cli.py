@@ -559,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "rebuilt from the log's 'core' record, sample by sample (no clock), and compares "
                                     "every command bit for bit: prints 'identical' (exit 0) or the first divergence "
                                     "(exit 1). --set/--controller run a what-if into --out NEW.mcap.")
-    rp.add_argument("log", metavar="LOG.mcap")
+    rp.add_argument("log", nargs="+", metavar="LOG.mcap", help="a log, or the parts of a rotated log in order")
     rp.add_argument("--set", action="append", metavar="controller.key=value")
     rp.add_argument("--controller", choices=CONTROLLERS)
     rp.add_argument("--out", metavar="NEW.mcap")

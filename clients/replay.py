@@ -58,10 +58,20 @@ def read_log(path: str | Path) -> tuple[dict, dict[int, dict], dict[int, dict], 
     return core, meas, zin, cmd, cfg_events
 
 
-def replay(path: str | Path, overrides: list[str] | None = None, controller: str | None = None,
+def replay(path: str | Path | list, overrides: list[str] | None = None, controller: str | None = None,
            out: str | None = None, progress: bool = True) -> dict:
+    """Replay one log, or the parts of a rotated log in order (one core across all of them)."""
     t0 = time.perf_counter()
-    core_meta, meas, zin, cmd, cfg_events = read_log(path)
+    parts = [path] if isinstance(path, str | Path) else list(path)
+    core_meta, meas, zin, cmd, cfg_events = read_log(parts[0])
+    for extra in parts[1:]:
+        _, m2, z2, c2, e2 = read_log(extra)
+        meas.update(m2)
+        zin.update(z2)
+        cmd.update(c2)
+        for k, v in e2.items():
+            cfg_events.setdefault(k, []).extend(v)
+    path = parts[0] if len(parts) == 1 else ", ".join(map(str, parts))
     ovs = list(overrides or [])
     if controller:
         ovs.append(f'controller.kind="{controller}"')

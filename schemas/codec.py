@@ -14,7 +14,7 @@ from typing import get_args
 
 from pydantic import BaseModel
 
-from .messages import Command, Estimate, Interaction, Measurement, TickInput
+from .messages import Command, Estimate, Interaction, LoopRecord, Measurement, TickInput
 
 VERSION = 1
 _TYPE_CODES = {int: "Q", float: "d", bool: "B"}
@@ -91,3 +91,4 @@ CMD = Codec(Command, 0xC1)
 Z = Codec(Interaction, 0x21)
 TICK_IN = Codec(TickInput, 0x71)
 EST = Codec(Estimate, 0x51)
+LOOP = Codec(LoopRecord, 0x4C)

@@ -85,6 +85,10 @@ class ComponentConfig(Named):
     plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
     log_dir: str | None = Field(default=None, description="record to <log_dir>/<id>-<UTC time>.mcap (off the loop)")
     log_est_every: Annotated[int, Field(ge=1, le=100000)] = Field(default=10, description="estimator record decimation")
+    log_rotate_bytes: Annotated[int, Field(ge=1 << 20)] | None = Field(
+        default=None, description="start a new file (<name>-1.mcap, -2, ...) after about this many bytes of JSON")
+    log_rotate_s: Annotated[float, Field(gt=0)] | None = Field(
+        default=None, description="start a new file after this much log time (s)")
     log_queue: Annotated[int, Field(ge=1024, le=4_194_304)] = Field(
         default=131_072, description="recorder ring slots (128 B each); full = counted drop, never a wait")
 

@@ -80,6 +80,18 @@ class TickInput(Msg):
     stepped: bool = Field(description="false: the core was not stepped (inactive or no fresh reference), du/dt = 0")
 
 
+class LoopRecord(Msg):
+    """Loop counters every N ticks (topic ``.../loop``); percentiles are in the status query."""
+
+    t: float = Field(description="sample time of the tick, s")
+    ticks: int = Field(ge=0)
+    overruns: int = Field(ge=0, description="whole periods skipped (clock trigger)")
+    no_new_sample: int = Field(ge=0)
+    missing_samples: int = Field(ge=0)
+    exec_max_ns: int = Field(ge=0, description="longest tick since the previous record, ns")
+    period_max_ns: int = Field(ge=0, description="longest tick-to-tick interval since the previous record, ns")
+
+
 class Event(Msg):
     """Diagnostics and events (topic ``.../events``): config changes, lifecycle, rejections, recorder drops."""
 
@@ -106,6 +118,7 @@ MESSAGE_MODELS: dict[str, type[Msg]] = {
     "energyctl.Interaction": Interaction,
     "energyctl.TickInput": TickInput,
     "energyctl.Event": Event,
+    "energyctl.LoopRecord": LoopRecord,
     "energyctl.Plant": Plant,
 }
 

@@ -49,6 +49,7 @@ class LoopStats:
         self.no_new_sample = 0  # clock ticks that found no new measurement
         self.missing_samples = 0  # gaps in the measurement sequence
         self.lockstep_timeouts = 0
+        self.window_exec_max = self.window_period_max = 0  # since the last loop record
 
     def record(self, period_ns: int, exec_ns: int) -> None:
         k = self.k
@@ -56,6 +57,10 @@ class LoopStats:
         self.exec[k] = exec_ns
         self.k = k + 1 if k + 1 < self.n else 0
         self.ticks += 1
+        if exec_ns > self.window_exec_max:
+            self.window_exec_max = exec_ns
+        if period_ns > self.window_period_max:
+            self.window_period_max = period_ns
 
     def summary(self) -> dict:
         m = min(self.ticks, self.n)
@@ -73,7 +78,7 @@ class LoopStats:
 
 
 class Neighbour:
-    __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "window", "forecast", "count")
+    __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "window", "forecast", "count", "topic")
 
     def __init__(self, nid: str, sub):
         self.id, self.sub = nid, sub
@@ -83,6 +88,7 @@ class Neighbour:
         self.window = -1
         self.forecast = (0.0, 0.0, 0.0, 0.0)
         self.count = 0
+        self.topic = ""
 
 
 class Daemon:
@@ -137,7 +143,7 @@ class Daemon:
     def _open_recorder(self):
         from datetime import UTC, datetime
 
-        from schemas.codec import EST, TICK_IN
+        from schemas.codec import EST, LOOP, TICK_IN
 
         from .recorder import git_revision
         from .shmlog import RingRecorder
@@ -146,15 +152,22 @@ class Daemon:
         base = f"{c.prefix}/{c.id}"
         self.t_meas, self.t_cmd, self.t_zin = f"{base}/meas", f"{base}/cmd", f"{base}/z_in"
         self.t_zout, self.t_est, self.t_ev = f"{base}/z_out", f"{base}/est", f"{base}/events"
+        self.t_loop = f"{base}/loop"
+        for nb in self.neighbours:
+            nb.topic = f"{base}/z_nb/{nb.id}"
         topics = {self.t_meas: ("energyctl.Measurement", MEAS), self.t_cmd: ("energyctl.Command", CMD),
                   self.t_zin: ("energyctl.TickInput", TICK_IN), self.t_zout: ("energyctl.Interaction", Z),
-                  self.t_est: ("energyctl.Estimate", EST), self.t_ev: ("energyctl.Event", None)}
+                  self.t_est: ("energyctl.Estimate", EST), self.t_ev: ("energyctl.Event", None),
+                  self.t_loop: ("energyctl.LoopRecord", LOOP)}
+        for nb in self.neighbours:  # raw neighbour messages, as received
+            topics[f"{base}/z_nb/{nb.id}"] = ("energyctl.Interaction", Z)
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
         path = f"{c.log_dir}/{c.id}-{stamp}.mcap"
         meta = {"config": {"json": c.model_dump_json()}, "core": {"json": core_metadata(
             self.core.cfg, c.model, self.period_s, self.core.d)}, "build": {"git": git_revision()}}
         self.log_path = path
-        return RingRecorder(path, topics, meta, slots=c.log_queue)
+        return RingRecorder(path, topics, meta, slots=c.log_queue, rotate_bytes=c.log_rotate_bytes,
+                            rotate_s=c.log_rotate_s)
 
     def close(self) -> None:
         self.state = "shutdown"
@@ -291,6 +304,8 @@ class Daemon:
             nb.window, nb.forecast = v[7], (v[8], v[9], v[10], v[11])
             nb.rx_ns = now
             nb.count += 1
+            if self.recorder is not None:
+                self.recorder.offer(nb.topic, v[1], v)
 
     def _apply_pending(self) -> None:
         """Apply a validated config change or lifecycle transition (called between ticks)."""
@@ -346,6 +361,11 @@ class Daemon:
             rec.offer(self.t_meas, t, v)
             rec.offer(self.t_zin, t, (seq, t, P_in, P_in_dot, stepped))
             rec.offer(self.t_cmd, t, self.last_cmd)
+            st = self.stats
+            if st.ticks % 1000 == 0:
+                rec.offer(self.t_loop, t, (t, st.ticks, st.overruns, st.no_new_sample, st.missing_samples,
+                                           st.window_exec_max, st.window_period_max))
+                st.window_exec_max = st.window_period_max = 0
             if stepped and self.stats.ticks % self.cfg.log_est_every == 0:
                 o = self.core.out
                 rec.offer(self.t_est, t, (t, est.E, est.p, est.E_t, o.y_z, est.y_z_balance, o.y_ref, est.eta, o.u_z,

@@ -37,7 +37,8 @@ class RingRecorder:
     """Same interface as service.recorder.Recorder: offer(topic, t, values) and close()."""
 
     def __init__(self, path: str | Path, topics: dict[str, tuple[str, Codec | None]],
-                 metadata: dict[str, dict[str, str]], slots: int = 1 << 17, chunk_size: int = 1 << 20):
+                 metadata: dict[str, dict[str, str]], slots: int = 1 << 17, chunk_size: int = 1 << 20,
+                 rotate_bytes: int | None = None, rotate_s: float | None = None):
         self.path = str(path)
         self.slots = slots
         self._shm = shared_memory.SharedMemory(create=True, size=_HDR.size + slots * SLOT)
@@ -56,12 +57,13 @@ class RingRecorder:
         self._result = ctx.Queue()
         self._proc = ctx.Process(target=_writer, name="energyctl-recorder", daemon=True,
                                  args=(self._shm.name, slots, self.path, spec, metadata, chunk_size,
-                                       self._events, self._result))
+                                       self._events, self._result, rotate_bytes, rotate_s))
         self._proc.start()
         self._buf = self._shm.buf
         self._w = 0
         self.drops: dict[str, int] = {}
         self._written_final: int | None = None
+        self.paths = [self.path]  # all parts, known at close
         self.error: str | None = None
 
     @property
@@ -100,6 +102,7 @@ class RingRecorder:
         try:
             res = self._result.get(timeout=1)
             self._written_final, self.error = res["written"], res["error"]
+            self.paths = res["paths"]
         except Exception:  # noqa: BLE001 - the writer died
             self.error = self.error or f"recorder process ended with code {self._proc.exitcode}"
         self._buf = None
@@ -107,7 +110,8 @@ class RingRecorder:
         self._shm.unlink()
 
 
-def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -> None:
+def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
+            rotate_s=None) -> None:
     import importlib
     from queue import Empty
 
@@ -116,13 +120,9 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -
     shm = shared_memory.SharedMemory(name=shm_name)
     buf = shm.buf
     written, error = 0, None
-    f = McapFile(path, chunk_size=chunk_size)
-    for name, data in metadata.items():
-        f.metadata(name, data)
     topics, codecs, fields, templates, bools = [], [], [], [], []
     ev_topic = None
-    for topic, schema, model_ref, magic in spec:
-        f.channel(topic, schema)
+    for topic, _schema, model_ref, magic in spec:
         topics.append(topic)
         if model_ref is None:
             codecs.append(None)
@@ -140,6 +140,32 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -
     from schemas.messages import Event
 
     ev_fields = tuple(Event.model_fields)
+    paths = [path]
+
+    def open_part(p: str, index: int) -> McapFile:
+        mf = McapFile(p, chunk_size=chunk_size)
+        for md_name, data in metadata.items():
+            mf.metadata(md_name, data)
+        mf.metadata("part", {"index": str(index), "first": str(path)})
+        for topic, schema, _ref, _magic in spec:
+            mf.channel(topic, schema)
+        return mf
+
+    f = open_part(path, 0)
+    part_bytes, part_t0 = 0, None
+
+    def maybe_rotate(t: float) -> None:
+        nonlocal f, part_bytes, part_t0
+        if part_t0 is None:
+            part_t0 = t
+        if (rotate_bytes and part_bytes >= rotate_bytes) or (rotate_s and t - part_t0 >= rotate_s):
+            f.close()
+            stem = path[:-5] if path.endswith(".mcap") else path
+            nxt = f"{stem}-{len(paths)}.mcap"
+            paths.append(nxt)
+            f = open_part(nxt, len(paths) - 1)
+            part_bytes, part_t0 = 0, t
+
     import os
 
     parent = os.getppid()
@@ -155,6 +181,9 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -
                 if bools[k]:
                     vals = tuple(("true" if v else "false") if j in bools[k] else v for j, v in enumerate(vals))
                 text = templates[k] % vals
+                if rotate_bytes or rotate_s:
+                    maybe_rotate(t)
+                    part_bytes += len(text)
                 if "nan" in text or "inf" in text:  # non-finite floats are not JSON text (no field name has these)
                     f.add(topics[k], t, dict(zip(fields[k], c.struct.unpack_from(buf, off + _PAYLOAD)[2:],
                                                  strict=True)))
@@ -188,4 +217,4 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result) -
             error = error or f"{type(e).__name__}: {e}"
         buf = None
         shm.close()
-        result.put({"written": written, "error": error})
+        result.put({"written": written, "error": error, "paths": paths})
