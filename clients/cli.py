@@ -407,6 +407,8 @@ def cmd_log(args: argparse.Namespace) -> int:
             res = recover(args.log, args.fixed)
             print(f"recovered {res['messages']} messages into {res['to']}"
                   + ("" if not res["was_complete"] else " (the source was already complete)"))
+    except BrokenPipeError:
+        raise
     except OSError as e:
         print(f"energyctl log: {e}", file=sys.stderr)
         return 2

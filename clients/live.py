@@ -109,6 +109,7 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
     comp["controller"]["delay_compensation_samples"] = None
     if out:
         comp["log_dir"] = str(Path(out).parent)
+
     plant = {"id": "plant", "controller_id": "source", "wait_for": ["load"], "zenoh": zc,
              "plant": scn.plant.model_dump(),
              "load": scn.load.model_dump(), "sensor": scn.sensor.model_dump(), "sample_rate_hz": rate,
@@ -122,6 +123,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
             "pacing": "lockstep" if lockstep else "realtime", "rate_hz": 200.0,
             "window_s": scn.feasibility.window_s, "forecast_margin": scn.feasibility.forecast_margin,
             "base_dir": scn.base_dir}
+    if out:
+        load["log_dir"] = str(Path(out).parent)
     # validate here so a bad scenario fails before any process starts
     config_from_dict(ComponentConfig, comp)
     config_from_dict(PlantPeerConfig, plant)

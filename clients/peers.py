@@ -200,12 +200,22 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
         return forecasts[k]
 
     sent = 0
+    rec = None
     z = [0.0, 0.0]
     last: tuple[float, float, float] | None = None
     try:
         pub = publisher(session, key(cfg.prefix, cfg.id, "z"))
         sub, meas_q = queued(session, key(cfg.prefix, cfg.plant_id, "meas")) if cfg.plant_id else (None, None)
         token = session.liveliness().declare_token(key(cfg.prefix, cfg.id, "alive"))
+        rec, z_topic = None, f"{cfg.prefix}/{cfg.id}/z"
+        if cfg.log_dir:
+            from datetime import UTC, datetime
+
+            from service.shmlog import RingRecorder
+
+            stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
+            rec = RingRecorder(f"{cfg.log_dir}/{cfg.id}-{stamp}.mcap", {z_topic: ("energyctl.Interaction", Z)},
+                               {"config": {"json": cfg.model_dump_json()}})
         t_start = time.monotonic()
         period = 1.0 / cfg.rate_hz
         nxt = time.monotonic()
@@ -244,9 +254,14 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
                 z[1] += 0.5 * (t - last[0]) * (Pd + last[2])
             last = (t, P, Pd)
             k = int(t // cfg.window_s)
-            pub.put(Z.encode(seq, t, P, Pd, Pd, z[0], z[1], k, *forecast(k)))
+            vals = (seq, t, P, Pd, Pd, z[0], z[1], k, *forecast(k))
+            pub.put(Z.encode(*vals))
+            if rec is not None:
+                rec.offer(z_topic, t, vals)
             sent += 1
         token.undeclare()
+        if rec is not None:
+            rec.close()
     finally:
         session.close()
-    return {"sent": sent}
+    return {"sent": sent, "log": rec.paths if rec is not None else None}

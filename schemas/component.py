@@ -128,6 +128,7 @@ class LoadPeerConfig(Named):
     pacing: Literal["lockstep", "realtime"] = "realtime"
     plant_id: str | None = Field(default=None, description="lockstep: answer each sample of this id's .../meas")
     duration_s: Annotated[float, Field(gt=0, le=86400)] = 3600.0
+    log_dir: str | None = Field(default=None, description="record published messages to <log_dir>/<id>-<time>.mcap")
     base_dir: str = "."
 
 
