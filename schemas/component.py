@@ -83,6 +83,13 @@ class ComponentConfig(Named):
     forecast_window_s: Annotated[float, Field(gt=0)] = 1.0
     neighbour_stale_s: Annotated[float, Field(gt=0)] = 0.05
     plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
+    meas_v_min_V: Annotated[float, Field(gt=0)] = Field(default=1.0, description="reject measurements with v below")
+    meas_v_max_V: Annotated[float, Field(gt=0)] = Field(default=1000.0, description="reject measurements with v above")
+    meas_i_max_A: Annotated[float, Field(gt=0)] = Field(default=1000.0, description="reject |i|, |i_load| above")
+    stale_periods: Annotated[int, Field(ge=1, le=100000)] = Field(
+        default=10, description="clock trigger: this many periods without a measurement -> degraded, du/dt = 0")
+    local_reference_W: float | None = Field(
+        default=None, description="load power to assume while every neighbour is silent (None: hold du/dt = 0)")
     log_dir: str | None = Field(default=None, description="record to <log_dir>/<id>-<UTC time>.mcap (off the loop)")
     log_est_every: Annotated[int, Field(ge=1, le=100000)] = Field(default=10, description="estimator record decimation")
     log_rotate_bytes: Annotated[int, Field(ge=1 << 20)] | None = Field(

@@ -8,7 +8,8 @@ Threads:
   validated there and handed to the loop, which applies it at the next tick boundary;
 * the main thread waits for SIGINT/SIGTERM and shuts down within one period.
 
-Lifecycle: configured -> active <-> inactive (du/dt = 0 is published) -> shutdown.
+Lifecycle: configured -> active <-> inactive (du/dt = 0 is published) -> shutdown; active -> degraded
+(stale measurements: du/dt = 0) -> active by itself when fresh measurements return.
 """
 
 from __future__ import annotations
@@ -105,6 +106,10 @@ class Daemon:
         self.config_version = 0
         self._pending: tuple[ControllerConfig, threading.Event, str] | None = None
         self.recorder = None
+        self._idle = 0
+        self.restarts = 0
+        self.degraded_reason = ""
+        self.reference = "none"
         self._pending_state: str | None = None
         self._stop = threading.Event()
         self._last_seq = -1
@@ -219,7 +224,11 @@ class Daemon:
             if s is None:
                 stats.no_new_sample += 1
                 self._poll_neighbours(start)
+                self._idle += 1
+                if self._idle == self.cfg.stale_periods and self.state == "active":
+                    self._degrade("meas: stale")
             else:
+                self._idle = 0
                 self._tick(s.payload.to_bytes(), start)
             end = now_ns()
             stats.record(start - prev if prev else 0, end - start)
@@ -248,7 +257,10 @@ class Daemon:
             if self._pending is not None or self._pending_state is not None:
                 self._apply_pending()
             if spin:  # poll the ring of one: filled on Zenoh's side, no GIL needed to fill it
-                m = sub.try_recv()
+                try:
+                    m = sub.try_recv()
+                except Exception:  # noqa: BLE001 - the subscriber was closed: shutting down
+                    break
                 if m is None:
                     idle += 1
                     if idle & 0x3FF == 0:  # keep neighbour freshness current while no sample comes
@@ -283,8 +295,10 @@ class Daemon:
             if max_ticks is not None and stats.ticks >= max_ticks:
                 break
 
-    def _reject(self, reason: str) -> None:
+    def _reject(self, reason: str, detail: str = "") -> None:
+        """Count by reason class (bounded keys); keep the detail of the last one."""
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        reason = f"{reason} ({detail})" if detail else reason
         self.last_reject = reason
         if self.recorder is not None:
             t = self.last_sample[1] if self.last_sample else 0.0
@@ -298,7 +312,7 @@ class Daemon:
             try:
                 v = Z.decode(z.payload.to_bytes())
             except DecodeError as e:
-                self._reject(f"{nb.id}.{e.field}: {e.reason}")
+                self._reject(f"{nb.id}.{e.field}: invalid", e.reason)
                 continue
             nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
             nb.window, nb.forecast = v[7], (v[8], v[9], v[10], v[11])
@@ -321,17 +335,51 @@ class Daemon:
         if self._pending_state is not None:
             self.state, self._pending_state = self._pending_state, None
 
+    def _degrade(self, why: str) -> None:
+        """Hold the source (du/dt = 0) until fresh measurements return; then back to active by itself."""
+        self.state = "degraded"
+        self.degraded_reason = why
+        ls = self.last_sample
+        if ls is not None:
+            self.cmd_pub.put(CMD.encode(ls[0], ls[1], 0.0, True))
+        if self.recorder is not None:
+            t = ls[1] if ls else 0.0
+            self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "degraded", why))
+
+    def _hold(self, v: tuple, reason: str, detail: str = "") -> None:
+        """A rejected measurement: counted, recorded, answered with du/dt = 0; the core never sees it."""
+        self._reject(reason, detail)
+        self.cmd_pub.put(CMD.encode(v[0], v[1], 0.0, True))
+        self.last_cmd = (v[0], v[1], 0.0, True)
+
     def _tick(self, payload: bytes, now: int) -> None:
         self._poll_neighbours(now)
         try:
             v = MEAS.decode(payload)
         except DecodeError as e:
-            self._reject(f"meas.{e.field}: {e.reason}")
+            self._reject(f"meas.{e.field}: invalid", e.reason)
             return
-        seq = v[0]
+        seq, t = v[0], v[1]
+        c = self.cfg
+        if not c.meas_v_min_V <= v[3] <= c.meas_v_max_V:
+            return self._hold(v, "meas.v: out of range",
+                              f"{v[3]:g} V not in [{c.meas_v_min_V:g}, {c.meas_v_max_V:g}]")
+        if abs(v[2]) > c.meas_i_max_A or abs(v[5]) > c.meas_i_max_A:
+            field = "i" if abs(v[2]) > c.meas_i_max_A else "i_load"
+            return self._hold(v, f"meas.{field}: out of range", f"beyond ±{c.meas_i_max_A:g} A")
+        if seq == 0 and self._last_seq > 0:  # the plant restarted: its history is not ours any more
+            self.core.reset()
+            self._last_seq = -1
+            self.restarts += 1
+            if self.recorder is not None:
+                self.recorder.offer(self.t_ev, t, (t, 0, "plant_restart", "{}"))
         if seq <= self._last_seq:
-            self._reject("meas.seq: not increasing")
+            self._reject("meas.seq: duplicate or not increasing")
             return
+        if self.last_sample is not None and self._last_seq >= 0 and t <= self.last_sample[1]:
+            return self._hold(v, "meas.t: not after the previous sample")
+        if self.state == "degraded":
+            self.state = "active"
         if self._last_seq >= 0 and seq > self._last_seq + 1:
             self.stats.missing_samples += seq - self._last_seq - 1
         self._last_seq = seq
@@ -344,6 +392,10 @@ class Daemon:
                 fresh = False
             P_in -= nb.P
             P_in_dot -= nb.P_dot
+        self.reference = "neighbours" if fresh else "none"
+        if not fresh and self.cfg.local_reference_W is not None:
+            P_in, P_in_dot, fresh = -self.cfg.local_reference_W, 0.0, True  # flagged in status
+            self.reference = "local"
         s = Sample(seq, v[1], v[2], v[3], v[4], v[5])
         stepped = self.state == "active" and fresh
         if stepped:
@@ -451,6 +503,8 @@ class Daemon:
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
                             "recent": [v.__dict__ for v in self.feas.violations[-5:]]},
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
+            "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
+            "plant_restarts": self.restarts,
             "logging": None if self.recorder is None else {
                 "path": self.log_path, "written": self.recorder.written, "drops": dict(self.recorder.drops),
                 "state": "degraded" if self.recorder.error else "ok", "error": self.recorder.error},

@@ -1,0 +1,146 @@
+"""Bad input never reaches the actuator: each class is rejected with the field named, counted, and
+answered with du/dt = 0 (or not at all); the core is never stepped on it."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import pytest
+from conftest import SCENARIOS
+
+from clients.live import configs_from_scenario
+from schemas.codec import CMD, MEAS, Z
+from schemas.component import ComponentConfig, config_from_dict
+from schemas.scenario import load_scenario
+from service.bus import free_tcp_port
+from service.daemon import Daemon
+
+
+@pytest.fixture
+def daemon():
+    """An opened daemon (loopback session, no peers) whose loop we drive by hand through _tick."""
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
+    comp["neighbour_stale_s"] = 10.0
+    comp["loop"]["trigger"] = "clock"
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    nb = d.neighbours[0]
+    nb.count, nb.P, nb.rx_ns = 1, 1200.0, 0
+    try:
+        yield d
+    finally:
+        d.close()
+
+
+def meas(k, t=None, i=15.0, v=80.0, u=80.15, i_load=15.0):
+    return MEAS.encode(k, k * 1e-4 if t is None else t, i, v, u, i_load)
+
+
+def feed(d, payload, now=1):
+    steps = d.core.steps
+    d._tick(payload, now)
+    return d.core.steps > steps  # did the core see it?
+
+
+def test_good_samples_step_the_core(daemon):
+    assert feed(daemon, meas(0)) and feed(daemon, meas(1))
+    assert daemon.rejected == {}
+
+
+@pytest.mark.parametrize(("payload", "reason"), [
+    (b"\x00" * 10, "meas.<payload>: invalid"),
+    (meas(5)[:-1], "meas.<payload>: invalid"),
+    (b"\x00" + meas(5)[1:], "meas.<magic>: invalid"),
+    (meas(5)[:1] + b"\x09" + meas(5)[2:], "meas.<version>: invalid"),
+    (MEAS.struct.pack(0xE1, 1, 5, 5e-4, math.nan, 80.0, 80.0, 15.0), "meas.i: invalid"),
+    (MEAS.struct.pack(0xE1, 1, 5, 5e-4, 15.0, math.inf, 80.0, 15.0), "meas.v: invalid"),
+    (MEAS.struct.pack(0xE1, 1, 5, 5e-4, 15.0, 80.0, -math.inf, 15.0), "meas.u: invalid"),
+    (meas(5, v=0.0), "meas.v: out of range"),
+    (meas(5, v=-3.0), "meas.v: out of range"),
+    (meas(5, v=5000.0), "meas.v: out of range"),
+    (meas(5, i=2e4), "meas.i: out of range"),
+    (meas(5, i_load=-2e4), "meas.i_load: out of range"),
+])
+def test_malformed_or_out_of_range_measurements_never_reach_the_core(daemon, payload, reason):
+    assert feed(daemon, meas(0)) and feed(daemon, meas(1))
+    cmd_before = daemon.last_cmd
+    assert not feed(daemon, payload)
+    assert daemon.rejected == {reason: 1}, daemon.rejected
+    if daemon.last_cmd != cmd_before:  # answered: with a hold
+        assert daemon.last_cmd[2] == 0.0
+    assert feed(daemon, meas(6))  # and the loop goes on
+
+
+def test_duplicate_backwards_and_skipped_sequence_numbers(daemon):
+    for k in range(3):
+        assert feed(daemon, meas(k))
+    assert not feed(daemon, meas(2))  # duplicate
+    assert not feed(daemon, meas(1))  # backwards
+    assert daemon.rejected == {"meas.seq: duplicate or not increasing": 2}
+    assert not feed(daemon, meas(3, t=1e-4))  # time going backwards
+    assert daemon.rejected["meas.t: not after the previous sample"] == 1 and daemon.last_cmd[2] == 0.0
+    assert feed(daemon, meas(7))  # a gap: accepted, counted
+    assert daemon.stats.missing_samples == 4
+
+
+def test_plant_restart_reinitialises_the_estimator(daemon):
+    for k in range(50):
+        feed(daemon, meas(k, i=15.0 + 0.01 * k))
+    assert daemon.core.estimator.fit.count == 50
+    daemon._tick(meas(0, t=0.0), 1)  # sequence reset: not a duplicate, a new history
+    assert daemon.rejected == {}
+    assert daemon.restarts == 1 and daemon.core.steps == 1 and daemon.core.estimator.fit.count == 1
+
+
+def test_bad_neighbour_messages_are_counted_and_a_local_reference_is_used_when_silent(daemon):
+    nb = daemon.neighbours[0]
+
+    class Msg:
+        def __init__(self, b):
+            self.payload = type("P", (), {"to_bytes": lambda s: b})()
+
+    class Ring:
+        def __init__(self, items):
+            self.items = list(items)
+
+        def try_recv(self):
+            return self.items.pop(0) if self.items else None
+
+    bad = Z.struct.pack(0x21, 1, 1, 0.0, math.nan, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    nb.sub = Ring([Msg(bad), Msg(b"junk")])  # one message per tick, as from a ring of one
+    assert feed(daemon, meas(0)) and feed(daemon, meas(1))
+    assert daemon.rejected == {"load.P_r_out: invalid": 1, "load.<payload>: invalid": 1}
+    assert nb.P == 1200.0  # the last good value stands
+    # the neighbour goes silent: without a local reference the daemon holds ...
+    nb.rx_ns = -10**12
+    assert not feed(daemon, meas(2), now=1) and daemon.last_cmd[2] == 0.0 and daemon.reference == "none"
+    # ... with one, it regulates to it, flagged
+    daemon.cfg = daemon.cfg.model_copy(update={"local_reference_W": 1000.0})
+    assert feed(daemon, meas(3), now=1) and daemon.reference == "local"
+    assert daemon.core.out.y_ref == pytest.approx(-1000.0)
+
+
+def test_invalid_config_sets_are_refused_with_the_field(daemon):
+    ok, body = daemon.apply_sets(["controller.limits.du_dt_max_V_per_s=-5"])
+    assert not ok and "du_dt_max_V_per_s" in body["error"]
+    ok, body = daemon.apply_sets(["controller.K_per_s=nan"])
+    assert not ok and "K_per_s" in body["error"]
+    ok, body = daemon.apply_sets(["lifecycle=sideways"])
+    assert not ok and "lifecycle" in body["error"]
+    assert daemon.core.cfg.K_per_s == 2000.0
+
+
+def test_stale_measurements_degrade_and_fresh_ones_resume(daemon):
+    import threading
+
+    assert feed(daemon, meas(0))
+    daemon.cfg = daemon.cfg.model_copy(update={"stale_periods": 5})
+    t = threading.Thread(target=daemon.run_loop, kwargs={"max_ticks": 20}, daemon=True)
+    t.start()  # clock trigger, no measurements arrive
+    t.join(5.0)
+    assert daemon.state == "degraded" and daemon.last_cmd is not None
+    assert feed(daemon, meas(1))  # fresh data: back by itself
+    assert daemon.state == "active"
+    assert CMD.size == struct.calcsize("<BBQdd?")
