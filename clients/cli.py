@@ -265,6 +265,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         res = {"bench": "sim", "scenario": scn.name, "simulated_s": 1.0, "control_hz": 10000, "plant_hz": 100000,
                "wall_s_best": best, "wall_s_worst": worst, "realtime_ratio_best": 1.0 / best,
                "realtime_ratio_worst": 1.0 / worst}
+    elif args.what == "soak":
+        from .bench_soak import bench_soak
+
+        res = bench_soak(args.minutes, rate_hz=args.rate)
     elif args.what == "recorder":
         from .bench_recorder import bench_recorder
 
@@ -509,8 +513,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="benchmarks: 'sim' (real-time ratio), 'core' (per-step cost), "
                                      "'latency' (daemon round trip vs bare Zenoh echo), "
-                                     "'recorder' (10 kHz stream set vs bare writer)")
-    b.add_argument("what", choices=["sim", "core", "latency", "recorder"])
+                                     "'recorder' (10 kHz stream set vs bare writer), 'soak' (RSS, drops, "
+                                     "overruns over minutes)")
+    b.add_argument("what", choices=["sim", "core", "latency", "recorder", "soak"])
+    b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
+    b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
     b.add_argument("--seconds", type=float, default=10.0, help="recorder: paced run length (default %(default)s)")
     b.add_argument("-n", type=int, default=3000, help="latency: round trips per target (default %(default)s)")
     b.add_argument("--wait", choices=["block", "spin"], default="block", help="latency: daemon wait strategy")

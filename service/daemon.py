@@ -64,17 +64,22 @@ class LoopStats:
             self.window_period_max = period_ns
 
     def summary(self) -> dict:
+        """Computed on the query thread with numpy on the raw buffers: no per-sample Python objects
+        (sorting 100 000 Python ints per query fragmented the heap and grew RSS ~3 MB/min at 100 Hz)."""
+        import numpy as np
+
         m = min(self.ticks, self.n)
         out = {"ticks": self.ticks, "overruns": self.overruns, "no_new_sample": self.no_new_sample,
                "missing_samples": self.missing_samples, "lockstep_timeouts": self.lockstep_timeouts,
                "overrun_pct": 100.0 * self.overruns / max(1, self.ticks + self.overruns)}
         for name, arr in (("period_us", self.period), ("exec_us", self.exec)):
-            vals = sorted(arr[:m] if m < self.n else arr)
-            vals = [v for v in vals if v > 0] if name == "period_us" else vals
-            if vals:
-                q = len(vals)
-                out[name] = {"mean": sum(vals) / q / 1e3, "p50": vals[q // 2] / 1e3,
-                             "p99": vals[min(q - 1, int(q * 0.99))] / 1e3, "max": vals[-1] / 1e3}
+            vals = np.frombuffer(arr, dtype=np.int64)[:m].astype(np.float64)
+            if name == "period_us":
+                vals = vals[vals > 0]
+            if vals.size:
+                p50, p99 = np.percentile(vals, [50, 99])
+                out[name] = {"mean": float(vals.mean()) / 1e3, "p50": float(p50) / 1e3, "p99": float(p99) / 1e3,
+                             "max": float(vals.max()) / 1e3}
         return out
 
 
@@ -114,7 +119,7 @@ class Daemon:
         self._stop = threading.Event()
         self._last_seq = -1
         self._z_seq = 0
-        self.feas = FeasibilityMonitor(cfg.forecast_window_s)
+        self.feas = FeasibilityMonitor(cfg.forecast_window_s, keep_windows=100)
         self._tau_p = tau_prime(cfg.model.L_H, cfg.model.R_ohm, effective_gain(cfg.controller, cfg.model))
         self._z_every = max(1, round(cfg.loop.rate_hz / cfg.interaction_rate_hz))
         self._own_range = [math.inf, -math.inf, math.inf, -math.inf]

@@ -63,9 +63,13 @@ class WindowRange:
 class FeasibilityMonitor:
     """Tracks Z^{r,out}[k] against Z^{r,in}[k] sample by sample; no I/O."""
 
-    def __init__(self, window_s: float, rel_tol: float = 1e-9):
+    MAX_VIOLATIONS = 1000  # the first ones are kept; all are counted
+
+    def __init__(self, window_s: float, rel_tol: float = 1e-9, keep_windows: int | None = None):
+        """keep_windows: a long-running user (the daemon) keeps only the most recent windows."""
         self.window_s = window_s
         self.rel_tol = rel_tol
+        self.keep_windows = keep_windows
         self.windows: dict[int, WindowRange] = {}
         self.violations: list[Violation] = []
         self._outside = {"P": False, "Qdot": False}
@@ -73,6 +77,9 @@ class FeasibilityMonitor:
 
     def set_range(self, k: int, z_in: tuple[float, float, float, float]) -> None:
         self.windows[k] = WindowRange(k, z_in)
+        if self.keep_windows is not None and len(self.windows) > self.keep_windows:
+            for old in sorted(self.windows)[: len(self.windows) - self.keep_windows]:
+                del self.windows[old]
 
     def update(self, t: float, P_out: float, Qdot_out: float) -> None:
         k = int(t // self.window_s)
@@ -92,6 +99,7 @@ class FeasibilityMonitor:
         tol = self.rel_tol * max(abs(lo), abs(hi), 1.0)
         out = not (lo - tol <= x <= hi + tol)
         if out and not self._outside[name]:
-            self.violations.append(Violation(t, name, x, lo, hi))
+            if len(self.violations) < self.MAX_VIOLATIONS:
+                self.violations.append(Violation(t, name, x, lo, hi))
             self.count += 1
         self._outside[name] = out

@@ -42,6 +42,7 @@ class RingRecorder:
         self.path = str(path)
         self.slots = slots
         self._shm = shared_memory.SharedMemory(create=True, size=_HDR.size + slots * SLOT)
+        self._shm.buf[:] = bytes(self._shm.size)  # touch every page now: no RSS growth while the ring fills
         _HDR.pack_into(self._shm.buf, 0, 0, 0, 0)
         self._codecs: dict[str, tuple[int, Codec]] = {}
         spec = []

@@ -1,0 +1,127 @@
+"""energyctl bench soak: daemon (clock loop, recording), realtime plant and load, status queries at 100 Hz.
+
+Reports the daemon's resident memory over time (growth and slope after a warm-up), the loop's
+overruns, the recorder's drops, and how many status queries were answered.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from schemas.component import ZenohConfig
+from schemas.scenario import load_scenario
+from service.bus import free_tcp_port, key, open_session
+
+from .live import Processes, _toml, configs_from_scenario, wait_until
+
+EMBEDDED = Path(__file__).parent / "embedded" / "demo.toml"
+
+
+def rss_kib(pid: int) -> int | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.0, warmup_s: float = 30.0,
+               record: bool = True) -> dict:
+    seconds = minutes * 60.0
+    warmup_s = min(warmup_s, seconds / 3)
+    tmp = Path(tempfile.mkdtemp(prefix="energyctl-soak-"))
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    scn = load_scenario(EMBEDDED, ["timing.plant_step_s=5e-5"])
+    comp, plant, load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=rate_hz,
+                                              out=str(tmp / "plant.mcap"), duration_s=seconds + 5.0)
+    comp["loop"] = {"rate_hz": rate_hz, "trigger": "clock"}
+    comp["log_rotate_s"] = 60.0
+    if not record:
+        comp.pop("log_dir", None)
+    plant["out"] = None
+    for name, d in (("component", comp), ("plant", plant), ("load", load)):
+        (tmp / f"{name}.toml").write_text(_toml(d))
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    stats = tmp / "status.json"
+    rss: list[tuple[float, int]] = []
+    queries = {"sent": 0, "answered": 0, "failed": 0}
+    with Processes() as procs:
+        d = procs.start("daemon", ["run", "--config", str(tmp / "component.toml"), "--stats-out", str(stats)],
+                        env=env)
+        procs.start("load", ["load", "--config", str(tmp / "load.toml")], env=env)
+        procs.start("plant", ["plant", "--config", str(tmp / "plant.toml"), "--json"], env=env)
+        session = open_session(ZenohConfig(mode="peer", connect=[ep]))
+        stop = threading.Event()
+
+        def query_loop() -> None:
+            sel = key("energyctl", "source", "status")
+            period = 1.0 / query_hz
+            nxt = time.monotonic()
+            while not stop.is_set():
+                nxt += period
+                queries["sent"] += 1
+                try:
+                    ok = any(r.ok is not None for r in session.get(sel, timeout=1.0))
+                    queries["answered" if ok else "failed"] += 1
+                except Exception:  # noqa: BLE001 - counted
+                    queries["failed"] += 1
+                delay = nxt - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+
+        try:
+            if not wait_until(lambda: any(r.ok is not None for r in
+                                          session.liveliness().get(key("energyctl", "source", "alive"), timeout=0.5)),
+                              20.0):
+                raise RuntimeError("daemon did not come up")
+            qt = threading.Thread(target=query_loop, daemon=True)
+            if query_hz > 0:
+                qt.start()
+            t0 = time.monotonic()
+            last_report = t0
+            while time.monotonic() - t0 < seconds:
+                time.sleep(1.0)
+                r = rss_kib(d.pid)
+                if r is not None:
+                    rss.append((time.monotonic() - t0, r))
+                if time.monotonic() - last_report >= 30:
+                    last_report = time.monotonic()
+                    sys.stderr.write(f"\rsoak {time.monotonic() - t0:.0f}/{seconds:.0f} s, daemon RSS {r} KiB   ")
+                    sys.stderr.flush()
+            stop.set()
+            if query_hz > 0:
+                qt.join(2.0)
+        finally:
+            session.close()
+        procs.stop_all(timeout_s=10.0)
+    sys.stderr.write("\n")
+    status = json.loads(stats.read_text()) if stats.exists() else {}
+    t = np.array([a for a, _ in rss])
+    m = np.array([b for _, b in rss], dtype=float)
+    after = t >= warmup_s
+    slope = float(np.polyfit(t[after], m[after], 1)[0]) if after.sum() > 2 else None
+    loop = status.get("loop", {})
+    logging = status.get("logging") or {}
+    for p in tmp.glob("*.mcap"):
+        os.unlink(p)
+    return {"bench": "soak", "minutes": minutes, "rate_hz": rate_hz, "query_hz": query_hz, "warmup_s": warmup_s,
+            "rss_kib_after_warmup": float(m[after][0]) if after.any() else None,
+            "rss_kib_end": float(m[-1]) if len(m) else None,
+            "rss_growth_kib_after_warmup": float(m[after][-1] - m[after][0]) if after.any() else None,
+            "rss_slope_kib_per_min": slope * 60 if slope is not None else None,
+            "loop_ticks": loop.get("ticks"), "overruns": loop.get("overruns"), "overrun_pct": loop.get("overrun_pct"),
+            "no_new_sample": loop.get("no_new_sample"), "missing_samples": loop.get("missing_samples"),
+            "recorder_written": logging.get("written"), "recorder_drops": logging.get("drops"),
+            "recorder_state": logging.get("state"), "queries": queries,
+            "rejected": status.get("rejected"), "final_state": status.get("state")}
