@@ -132,17 +132,8 @@ def report(paths: list[str], out_dir: str) -> dict:
             ax[0].plot(e["t"], e["y_z"], label=f"y_z {lg['name']}")
             ax[0].plot(e["t"], e["y_ref"], "--", label=f"y_ref {lg['name']}")
             ax[1].plot(e["t"], e["u_z"], lw=0.6, label=lg["name"])
-        ax[0].set_ylabel("W")
-        ax[1].set_ylabel("u_z = Qdot^u (W/s)")
-        ax[1].set_xlabel("t (s)")
-        for a in ax:
-            a.grid(alpha=0.3)
-            a.legend(fontsize=8)
-        fig.suptitle("energy-space output and reference")
-        fig.tight_layout()
-        fig.savefig(out / "energy.png", dpi=110)
-        plt.close(fig)
-        figs.append("energy.png")
+        figs.append(_finish(plt, fig, ax, ("W", "u_z = Qdot^u (W/s)"), "energy-space output and reference",
+                            out / "energy.png"))
 
         fig, ax = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
         for lg in logs:
@@ -161,17 +152,8 @@ def report(paths: list[str], out_dir: str) -> dict:
                 ax[1].fill_between([t0, t1], qlo, qhi, color=color, alpha=0.12, label=lab)
                 any_bands = True
         ax[1].set_yscale("symlog", linthresh=1e3)
-        ax[0].set_ylabel("W")
-        ax[1].set_ylabel("W/s")
-        ax[1].set_xlabel("t (s)")
-        for a in ax:
-            a.grid(alpha=0.3)
-            a.legend(fontsize=8)
-        fig.suptitle("outgoing vs incoming interaction variable" + (" with feasibility bands" if any_bands else ""))
-        fig.tight_layout()
-        fig.savefig(out / "interaction.png", dpi=110)
-        plt.close(fig)
-        figs.append("interaction.png")
+        title = "outgoing vs incoming interaction variable" + (" with feasibility bands" if any_bands else "")
+        figs.append(_finish(plt, fig, ax, ("W", "W/s"), title, out / "interaction.png"))
 
     metrics = [(lg["name"], lg["meta"].get("metrics") or summary_metrics(lg)) for lg in logs]
     keys = ["settle_s", "v_min", "v_max", "ss_error", "rms_du_dt", "max_abs_du_dt"]
@@ -183,6 +165,20 @@ def report(paths: list[str], out_dir: str) -> dict:
     lines += ["", *(f"![{f}]({f})" for f in figs), ""]
     (out / "summary.md").write_text("\n".join(lines))
     return {"out": str(out), "figures": figs, "summary": str(out / "summary.md"), "metrics": dict(metrics)}
+
+
+def _finish(plt, fig, ax, ylabels: tuple[str, ...], title: str, path: Path) -> str:
+    """Labels, grid, legend, title; save as PNG and close. Returns the file name."""
+    for a, lab in zip(ax, ylabels, strict=True):
+        a.set_ylabel(lab)
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    ax[-1].set_xlabel("t (s)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
 
 
 def _fmt(v) -> str:
