@@ -36,8 +36,13 @@ def run_daemon(cfg: ComponentConfig, stats_out: str | None = None) -> int:
     print(f"energyctl run: {cfg.id} active, {cfg.loop.rate_hz:g} Hz {cfg.loop.trigger} trigger "
           f"({'lockstep' if cfg.loop.lockstep else 'free-running'}), neighbours {cfg.neighbours or 'none'}",
           file=sys.stderr, flush=True)
+    warned = False
     while not stop.is_set() and loop.is_alive():
         stop.wait(0.05)
+        if not warned and d.recorder is not None and d.recorder.failed:
+            warned = True  # once: control goes on without the log
+            print(f"energyctl run: logging degraded, control continues: {d.recorder.error}", file=sys.stderr,
+                  flush=True)
     d.stop()
     loop.join(timeout=1.0)
     d.close()

@@ -512,7 +512,7 @@ class Daemon:
             "plant_restarts": self.restarts,
             "logging": None if self.recorder is None else {
                 "path": self.log_path, "written": self.recorder.written, "drops": dict(self.recorder.drops),
-                "state": "degraded" if self.recorder.error else "ok", "error": self.recorder.error},
+                "state": "degraded" if self.recorder.failed else "ok", "error": self.recorder.error},
         }
 
     def _status_reply(self, query) -> tuple[bool, dict]:

@@ -25,7 +25,8 @@ from pathlib import Path
 from schemas.codec import Codec
 
 SLOT = 128
-_HDR = struct.Struct("<QQQ")  # (unused), messages taken by the writer (statistics only), stop flag
+_HDR = struct.Struct("<QQQ")  # (unused), messages taken by the writer (statistics only), stop flag byte 16,
+#                               writer-failed flag byte 17
 _SLOT_HDR = struct.Struct("<Bd")  # topic id, log time (s); after the one-byte slot flag
 _PAYLOAD = 1 + _SLOT_HDR.size
 
@@ -70,15 +71,31 @@ class RingRecorder:
     @property
     def written(self) -> int:
         """Messages the writer process has taken (a statistic; exact once closed)."""
-        if self._written_final is not None:
-            return self._written_final
+        if self._written_final is not None or self._buf is None:
+            return self._written_final or 0
         return _IDX.unpack_from(self._buf, 8)[0]
 
     @property
     def pid(self) -> int | None:
         return self._proc.pid
 
+    @property
+    def failed(self) -> bool:
+        """The writer process could not write (unwritable directory, disk full, died): logging is degraded."""
+        if self._buf is None:
+            return self.error is not None
+        if self._buf[17] or not self._proc.is_alive():
+            if self.error is None:
+                try:
+                    self.error = self._result.get_nowait()["error"]
+                except Exception:  # noqa: BLE001 - no message (killed)
+                    self.error = f"recorder process ended with code {self._proc.exitcode}"
+            return True
+        return False
+
     def offer(self, topic: str, t: float, values: tuple) -> None:
+        if self._buf[17]:  # the writer failed: stop filling a ring nobody empties (control goes on)
+            return
         ent = self._codecs.get(topic)
         if ent is None:
             if topic == self._events_topic:
@@ -102,10 +119,12 @@ class RingRecorder:
         self._proc.join(timeout=30)
         try:
             res = self._result.get(timeout=1)
-            self._written_final, self.error = res["written"], res["error"]
+            self._written_final, self.error = res["written"], res["error"] or self.error
             self.paths = res["paths"]
-        except Exception:  # noqa: BLE001 - the writer died
+        except Exception:  # noqa: BLE001 - the writer died, or its message was already taken by `failed`
             self.error = self.error or f"recorder process ended with code {self._proc.exitcode}"
+            if self._written_final is None:
+                self._written_final = 0
         self._buf = None
         self._shm.close()
         self._shm.unlink()
@@ -152,8 +171,15 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             mf.channel(topic, schema)
         return mf
 
-    f = open_part(path, 0)
     part_bytes, part_t0 = 0, None
+    try:
+        f = open_part(path, 0)
+    except Exception as e:  # noqa: BLE001 - unwritable directory, disk full: tell the parent, end
+        buf[17] = 1
+        result.put({"written": 0, "error": f"cannot write {path}: {type(e).__name__}: {e}", "paths": []})
+        buf = None
+        shm.close()
+        return
 
     def maybe_rotate(t: float) -> None:
         nonlocal f, part_bytes, part_t0
@@ -211,6 +237,7 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             time.sleep(0.0005)
     except Exception as e:  # noqa: BLE001 - report, keep what was written
         error = f"{type(e).__name__}: {e}"
+        buf[17] = 1
     finally:
         try:
             f.close()

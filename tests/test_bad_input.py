@@ -144,3 +144,27 @@ def test_stale_measurements_degrade_and_fresh_ones_resume(daemon):
     assert feed(daemon, meas(1))  # fresh data: back by itself
     assert daemon.state == "active"
     assert CMD.size == struct.calcsize("<BBQdd?")
+
+
+def test_an_unwritable_log_directory_degrades_logging_not_control(tmp_path):
+    from clients.live import wait_until
+
+    blocker = tmp_path / "not-a-directory"
+    blocker.write_text("a file where the log directory should be")
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
+    comp.update({"neighbour_stale_s": 10.0, "log_dir": str(blocker / "logs")})
+    comp["loop"]["trigger"] = "clock"
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    try:
+        nb = d.neighbours[0]
+        nb.count, nb.P, nb.rx_ns = 1, 1200.0, 0
+        assert wait_until(lambda: d.recorder.failed, 20.0)
+        logging = d.status()["logging"]
+        assert logging["state"] == "degraded" and "cannot write" in logging["error"]
+        for k in range(20):  # control goes on, and offering to the dead recorder costs nothing
+            assert feed(d, meas(k))
+    finally:
+        d.close()
+    assert d.recorder.error and d.recorder.written == 0
