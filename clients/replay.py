@@ -16,7 +16,7 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
-from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, scenario_from_dict
+from schemas.scenario import ControllerConfig, apply_overrides, scenario_from_dict
 from service.core import ControlCore
 from service.types import Incoming, Sample
 
@@ -116,12 +116,9 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
 
 
 def _controller(base: dict, overrides: list[str]) -> ControllerConfig:
-    try:
-        data = apply_overrides({"controller": base}, [o if o.startswith("controller.") else f"controller.{o}"
-                                                      for o in overrides])
-        return scenario_from_dict(data).controller
-    except ScenarioError:
-        raise
+    data = apply_overrides({"controller": base}, [o if o.startswith("controller.") else f"controller.{o}"
+                                                  for o in overrides])
+    return scenario_from_dict(data).controller
 
 
 def _write(out: str, core_meta: dict, ctl: ControllerConfig, replayed, meas, zin) -> None:

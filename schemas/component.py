@@ -158,4 +158,4 @@ def config_from_dict(kind: type[BaseModel], data: dict, overrides: list[str] | N
     try:
         return kind.model_validate(data)
     except ValidationError as err:
-        raise ScenarioError(format_validation_error(err, source).replace("scenario", "config", 1)) from None
+        raise ScenarioError(format_validation_error(err, source, what="config")) from None

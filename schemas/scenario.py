@@ -208,14 +208,15 @@ class ScenarioError(ValueError):
     """A scenario that cannot be used; the message names every offending field."""
 
 
-def format_validation_error(err: ValidationError, source: str = "") -> str:
+def format_validation_error(err: ValidationError, source: str = "", what: str = "scenario") -> str:
+    """One line per offending field, headed 'invalid <what> <source> (N errors):'."""
     lines = []
     for e in err.errors():
         loc = ".".join(str(p) for p in e["loc"])
         got = e.get("input")
         shown = "" if isinstance(got, dict) or got is None else f" (got {got!r})"
         lines.append(f"  {loc or '<root>'}: {e['msg']}{shown}")
-    head = f"invalid scenario {source}".rstrip() + f" ({len(lines)} error{'s' if len(lines) > 1 else ''}):"
+    head = f"invalid {what} {source}".rstrip() + f" ({len(lines)} error{'s' if len(lines) > 1 else ''}):"
     return "\n".join([head, *lines])
 
 

@@ -23,6 +23,7 @@ import time
 from array import array
 
 import zenoh
+from pydantic import ValidationError
 
 from schemas.codec import CMD, MEAS, DecodeError, Z
 from schemas.component import ComponentConfig
@@ -546,9 +547,8 @@ class Daemon:
             new = ControllerConfig.model_validate(data)
         except ScenarioError as e:
             return False, {"error": str(e)}
-        except Exception as e:  # pydantic.ValidationError
-            fe = format_validation_error(e, "set") if hasattr(e, "errors") else str(e)
-            return False, {"error": fe.replace("scenario", "config", 1)}
+        except ValidationError as e:
+            return False, {"error": format_validation_error(e, "set", what="config")}
         if new.kind != self.core.cfg.kind or new.mapping != self.core.cfg.mapping:
             return False, {"error": "controller.kind and controller.mapping cannot change at run time"}
         if life:

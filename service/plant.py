@@ -44,29 +44,8 @@ class RLCPlant:
         u0 = ini.u_V if ini.u_V is not None else ini.v_V + cfg.R_ohm * ini.i_A
         self.u = min(max(float(u0), self.u_min), self.u_max)
 
-    def load_power(self, t: float) -> float:
-        return self.load.value(t)
-
-    def i_load(self) -> float:
-        return load_current(self.load.value(self.t), self.v, self.v_min)
-
     def u_m(self, t: float) -> float:
         return self.dist.value(t) if self.dist is not None else 0.0
-
-    def derivatives(self, r: float = 0.0) -> tuple[float, float, float, float]:
-        """Exact (di/dt, dv/dt, du/dt, di_2/dt) at the current state under commanded rate r."""
-        t, i, v, u = self.t, self.i, self.v, self.u
-        P = self.load.value(t)
-        di = (u + self.u_m(t) - self.R * i - v) / self.L
-        i2 = load_current(P, v, self.v_min)
-        dv = (i - i2) / self.C
-        du = r if (self.u_min < u < self.u_max or (u <= self.u_min and r > 0) or (u >= self.u_max and r < 0)) else 0.0
-        Pdot = self.load.rate(t)
-        if v >= self.v_min:
-            di2 = Pdot / v - P * dv / (v * v)
-        else:
-            di2 = (Pdot * v + P * dv) / (self.v_min * self.v_min)
-        return di, dv, du, di2
 
     def advance(self, r: float, T: float, n_sub: int) -> None:
         """Integrate over T seconds with constant commanded rate r (V/s) in n_sub RK4 steps.
