@@ -208,6 +208,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     out = logs / f"demo-{stamp}.mcap"
     mode = "offline" if args.offline else "realtime" if args.realtime else "lockstep"
+    if args.secure and args.offline:
+        raise ScenarioError("demo: --secure needs Zenoh (not --offline)")
+    mode += ", secure profile: router with authentication and access control" if args.secure else ""
     rate = args.rate or (scn.timing.control_rate_hz if mode != "realtime" else DEMO_REALTIME_HZ)
     print(f"energyctl {__version__} demo ({mode}, {rate:g} Hz): {scn.description}", flush=True)
     t0 = time.perf_counter()
@@ -221,7 +224,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         from .live import run_live
 
         logs.mkdir(parents=True, exist_ok=True)
-        res = run_live(scn, not args.realtime, rate, str(out), args.duration, args.delay)
+        res = run_live(scn, not args.realtime, rate, str(out), args.duration, args.delay, secure=args.secure)
         m = res["metrics"]
         print(metrics_table([([scn.name, f"{scn.controller.kind} over Zenoh"], m)], ["scenario", "controller"]))
         d = res.get("daemon", {}).get("loop", {})
@@ -319,10 +322,35 @@ def _bench_core(args: argparse.Namespace) -> dict:
 
 
 def _zenoh_from_args(args: argparse.Namespace):
-    from schemas.component import ZenohConfig
+    from schemas.component import ZenohConfig, config_from_dict
 
-    return ZenohConfig(mode=args.mode, connect=args.connect or [], listen=args.listen or [],
-                       config_file=args.zenoh_config)
+    return config_from_dict(ZenohConfig, {"mode": args.mode, "connect": args.connect or [],
+                                          "listen": args.listen or [], "config_file": args.zenoh_config,
+                                          "user": args.user, "password_file": args.password_file}, source="options")
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from .secure import run_router
+
+    return run_router(args.config, args.listen or [])
+
+
+def cmd_secure_profile(args: argparse.Namespace) -> int:
+    from .secure import write_profile
+
+    plants = None
+    if args.plant:
+        bad = [p for p in args.plant if "=" not in p]
+        if bad:
+            raise ScenarioError(f"--plant: expected USER=CONTROLLER_ID, got {bad}")
+        plants = dict(p.split("=", 1) for p in args.plant)
+    paths = write_profile(args.out, args.prefix, args.controller, plants, args.load, args.operator, args.monitor,
+                          args.listen)
+    users = [u for u in paths if u not in ("router", "credentials")]
+    print(f"wrote {paths['router']} (access control, default deny) and {paths['credentials']}")
+    print(f"password files (mode 600) for: {', '.join(users)} in {Path(args.out)}")
+    print(f"start the router:  energyctl router --config {paths['router']}")
+    return 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -504,6 +532,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--lockstep", action="store_true", help="deterministic co-simulation (the default)")
     d.add_argument("--realtime", action="store_true", help="wall-clock pacing instead of lockstep")
     d.add_argument("--offline", action="store_true", help="no Zenoh: the offline closed loop of energyctl sim")
+    d.add_argument("--secure", action="store_true", help="through a router with user/password authentication and "
+                                                         "the access-control profile (energyctl secure-profile)")
     d.add_argument("--rate", type=float, help=f"control/sample rate, Hz (realtime default {DEMO_REALTIME_HZ:g})")
     d.add_argument("--duration", type=float, help="seconds to run (default: the scenario's)")
     d.add_argument("--delay", type=int, help="realtime: samples between a measurement and the instant its command "
@@ -532,6 +562,8 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
         sp.add_argument("--listen", action="append", metavar="ENDPOINT")
         sp.add_argument("--zenoh-config", metavar="FILE.json5", help="a Zenoh config file, passed through")
+        sp.add_argument("--user", help="Zenoh user/password authentication: user name (with --password-file)")
+        sp.add_argument("--password-file", metavar="FILE", help="file holding the password (mode 600)")
 
     r = sub.add_parser("run", help="the controller daemon for one component (Zenoh)",
                        description="Fixed-rate control loop on Zenoh; see README 'Daemon' for the key expressions. "
@@ -562,6 +594,32 @@ def build_parser() -> argparse.ArgumentParser:
     qu.add_argument("--json", action="store_true")
     zenoh_opts(qu)
     qu.set_defaults(func=cmd_query)
+
+    ro = sub.add_parser("router", help="a Zenoh router in this process (for the secure profile; no zenohd needed)",
+                        description="Runs a Zenoh router until SIGINT/SIGTERM. With --config, a Zenoh JSON5 file "
+                                    "such as the one 'energyctl secure-profile' writes (user/password authentication "
+                                    "and an access-control list); a relative credentials dictionary is read from that "
+                                    "file's directory. Multicast scouting stays off.")
+    ro.add_argument("--config", metavar="ROUTER.json5")
+    ro.add_argument("--listen", action="append", metavar="ENDPOINT", help="replaces the file's listen endpoints")
+    ro.set_defaults(func=cmd_router)
+
+    sp_ = sub.add_parser("secure-profile", help="write a router config with authentication and access control",
+                         description="Writes DIR/router.json5 (Zenoh user/password authentication and an ACL with "
+                                     "default deny: only the plant publishes measurements, only the controller "
+                                     "commands, only operators set config), DIR/credentials.txt and one "
+                                     "DIR/<user>.password per identity (mode 600). Existing passwords are kept. "
+                                     "See README 'Security'.")
+    sp_.add_argument("--out", required=True, metavar="DIR")
+    sp_.add_argument("--prefix", default="energyctl")
+    sp_.add_argument("--controller", action="append", metavar="ID", help="controller id = its user (default: source)")
+    sp_.add_argument("--plant", action="append", metavar="USER=CONTROLLER_ID",
+                     help="plant user and the controller it serves (default: plant=<first controller>)")
+    sp_.add_argument("--load", action="append", metavar="ID", help="neighbour load id = its user (default: load)")
+    sp_.add_argument("--operator", action="append", metavar="USER", help="may set config (default: operator)")
+    sp_.add_argument("--monitor", action="append", metavar="USER", help="may only read (default: monitor)")
+    sp_.add_argument("--listen", action="append", metavar="ENDPOINT", help="default: tcp/127.0.0.1:7447")
+    sp_.set_defaults(func=cmd_secure_profile)
 
     rp = sub.add_parser("replay", help="re-run a log's inputs through the core; 'identical' or the first divergence",
                         description="Feeds the logged measurements and incoming interaction variables through a core "
@@ -601,6 +659,9 @@ def main(argv: list[str] | None = None) -> int:
     except ScenarioError as e:
         print(f"energyctl: {e}", file=sys.stderr)
         return 2
+    except ConnectionError as e:
+        print(f"energyctl: {e}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print("energyctl: interrupted", file=sys.stderr)
         return 130

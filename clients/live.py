@@ -201,13 +201,24 @@ class Processes:
 
 
 def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | None, duration_s: float | None,
-             controller_delay: int | None = None, workdir: str | None = None, timeout_s: float = 300.0) -> dict:
-    """Start controller, load and plant on a free loopback port; wait for the plant; stop the rest."""
+             controller_delay: int | None = None, workdir: str | None = None, timeout_s: float = 300.0,
+             secure: bool = False) -> dict:
+    """Start controller, load and plant on a free loopback port; wait for the plant; stop the rest.
+
+    ``secure``: the three connect as Zenoh clients, each with its own credentials, to a router that
+    enforces the secure profile (``clients.secure``), written to the work directory first."""
     from service.bus import free_tcp_port
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     comp, plant, load = configs_from_scenario(scn, ep, lockstep, rate_hz, controller_delay, out, duration_s)
     tmp = Path(workdir or tempfile.mkdtemp(prefix="energyctl-"))
+    if secure:
+        from .secure import client_zenoh, write_profile
+
+        creds = write_profile(tmp / "secure", controllers=["source"], plants={"plant": "source"}, loads=["load"],
+                              listen=[ep])
+        for d in (comp, plant, load):
+            d["zenoh"] = client_zenoh(ep, d["id"], creds[d["id"]])
     paths = {}
     for name, d in (("component", comp), ("plant", plant), ("load", load)):
         paths[name] = tmp / f"{name}.toml"
@@ -216,6 +227,10 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
     env = dict(os.environ)
     env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
     with Processes() as procs:
+        if secure:
+            procs.start("router", ["router", "--config", str(creds["router"])], env=env)
+            if not wait_until(lambda: port_open(ep), 15.0):
+                raise RuntimeError(f"the router did not listen on {ep} within 15 s")
         procs.start("daemon", ["run", "--config", str(paths["component"]), "--stats-out", str(stats_path)], env=env)
         procs.start("load", ["load", "--config", str(paths["load"])], env=env)
         p = procs.start("plant", ["plant", "--config", str(paths["plant"]), "--json"], env=env)
@@ -232,6 +247,18 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
     res["endpoint"] = ep
     res["daemon_log"] = (res["daemon"].get("logging") or {}).get("path")
     return res
+
+
+def port_open(endpoint: str) -> bool:
+    """Whether something accepts TCP connections at a ``tcp/HOST:PORT`` endpoint."""
+    import socket
+
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    try:
+        with socket.create_connection((host, int(port)), timeout=0.2):
+            return True
+    except OSError:
+        return False
 
 
 def wait_until(pred, timeout_s: float, every_s: float = 0.02) -> bool:

@@ -21,7 +21,9 @@ def query(z: ZenohConfig, prefix: str, component: str, what: str, sets: list[str
     try:
         if what == "interaction":
             return _interaction(session, prefix, component, timeout_s)
-        selector = key(prefix, component, what) + ("?set" if sets else "")
+        if sets:
+            what = "config/set"
+        selector = key(prefix, component, what)
         payload = json.dumps({"set": sets}) if sets else None
         deadline = time.monotonic() + timeout_s
         while True:  # the route to a just-started peer can take a moment to appear
@@ -33,8 +35,8 @@ def query(z: ZenohConfig, prefix: str, component: str, what: str, sets: list[str
             if r.ok is not None:
                 return json.loads(r.ok.payload.to_bytes())
             raise QueryError(_err_text(r.err.payload.to_bytes()))
-        raise QueryError(f"no answer from {key(prefix, component, what)} within {timeout_s:g} s "
-                         "(is the controller running and reachable? see --connect)")
+        raise QueryError(f"no answer from {selector} within {timeout_s:g} s (is the controller running and "
+                         "reachable? see --connect; behind a router with access control, may this user ask it?)")
     finally:
         session.close()
 

@@ -7,7 +7,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, Field, ValidationError, field_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from .scenario import (
     CircuitParams,
@@ -34,6 +34,16 @@ class ZenohConfig(Strict):
     connect: list[str] = []
     config_file: str | None = None
     multicast_scouting: bool = False
+    user: str | None = Field(default=None, description="user/password authentication (transport/auth/usrpwd): "
+                                                       "this session's user name, its identity in the router's ACL")
+    password_file: str | None = Field(default=None, description="file holding the password (first line); relative "
+                                                                "paths are taken from the config file's directory")
+
+    @model_validator(mode="after")
+    def _credentials(self):
+        if (self.user is None) != (self.password_file is None):
+            raise ValueError("zenoh.user and zenoh.password_file go together")
+        return self
 
 
 class Named(Strict):
@@ -140,17 +150,48 @@ class LoadPeerConfig(Named):
 
 
 def load_config(kind: type[BaseModel], path: str | Path, overrides: list[str] | None = None):
-    """Read and validate a TOML config of the given model; errors name the field."""
+    """Read and validate a TOML config of the given model; errors name the field.
+
+    ``extends = "OTHER.toml"`` (relative to this file) starts from another config: tables merge key by
+    key, anything else in this file replaces the other's value."""
     p = Path(path)
+    data = _read_toml(p, kind, [])
+    return config_from_dict(kind, data, overrides, str(p))
+
+
+def _read_toml(p: Path, kind: type[BaseModel], seen: list[Path]) -> dict:
+    if p.resolve() in seen:
+        raise ScenarioError(f"config {p}: 'extends' loops back to itself ({' -> '.join(map(str, seen))})")
     try:
         data = tomllib.loads(p.read_text())
     except OSError as e:
         raise ScenarioError(f"cannot read config {p}: {e.strerror}") from None
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"config {p} is not valid TOML: {e}") from None
+    own_base_dir = "base_dir" in data
     if "base_dir" in kind.model_fields:
         data.setdefault("base_dir", str(p.parent.resolve()))
-    return config_from_dict(kind, data, overrides, str(p))
+    z = data.get("zenoh")
+    if isinstance(z, dict):  # Zenoh file paths in a config file are relative to that file
+        for f in ("password_file", "config_file"):
+            if isinstance(z.get(f), str) and not Path(z[f]).is_absolute():
+                z[f] = str((p.parent / z[f]).resolve())
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ScenarioError(f"config {p}: extends: expected a file name")
+    parent = _read_toml(p.parent / base, kind, [*seen, p.resolve()])
+    if not own_base_dir and "base_dir" in parent:  # relative data paths stay those of the file that has them
+        data["base_dir"] = parent["base_dir"]
+    return _merge(parent, data)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def config_from_dict(kind: type[BaseModel], data: dict, overrides: list[str] | None = None, source: str = ""):

@@ -8,13 +8,15 @@ Key expressions, for component id ``ID`` under ``PREFIX`` (default ``energyctl``
 | ``PREFIX/ID/cmd`` | the controller of ID | Command, binary (CMD) |
 | ``PREFIX/ID/z`` | component ID | Interaction, binary (Z) |
 | ``PREFIX/ID/status`` | queryable of the controller | JSON |
-| ``PREFIX/ID/config`` | queryable of the controller (get; set with ``?set`` and a JSON payload) | JSON |
+| ``PREFIX/ID/config`` | queryable of the controller: get | JSON |
+| ``PREFIX/ID/config/set`` | queryable of the controller: set, JSON payload ``{"set": [...]}`` | JSON |
 | ``PREFIX/ID/alive`` | liveliness token of the controller | - |
 """
 
 from __future__ import annotations
 
 import json
+import os
 import socket
 import time
 from queue import SimpleQueue
@@ -22,6 +24,7 @@ from queue import SimpleQueue
 import zenoh
 
 from schemas.component import ZenohConfig
+from schemas.scenario import ScenarioError
 
 
 def key(prefix: str, component_id: str, leaf: str) -> str:
@@ -30,6 +33,11 @@ def key(prefix: str, component_id: str, leaf: str) -> str:
 
 def zenoh_config(z: ZenohConfig) -> zenoh.Config:
     cfg = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
+    if z.config_file:  # a relative credentials dictionary is taken from the config file's directory
+        d = json.loads(cfg.get_json("transport/auth/usrpwd/dictionary_file") or "null")
+        if isinstance(d, str) and not os.path.isabs(d):
+            path = os.path.join(os.path.dirname(os.path.abspath(z.config_file)), d)
+            cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(path))
     if not z.config_file or z.mode != "peer":
         cfg.insert_json5("mode", json.dumps(z.mode))
     if z.listen:
@@ -38,11 +46,38 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
         cfg.insert_json5("connect/endpoints", json.dumps(z.connect))
     if not z.config_file or not z.multicast_scouting:
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(z.multicast_scouting))
+    if z.user is not None:
+        auth = {"user": z.user, "password": read_password(z.password_file)}
+        cfg.insert_json5("transport/auth/usrpwd", json.dumps(auth))
     return cfg
 
 
+def read_password(path: str) -> str:
+    """The first line of a password file; refuses a file others can read (as ssh refuses a private key)."""
+    try:
+        st = os.stat(path)
+        with open(path, encoding="utf-8") as f:
+            pw = f.readline().rstrip("\r\n")
+    except OSError as e:
+        raise ScenarioError(f"zenoh.password_file: cannot read {path}: {e.strerror}") from None
+    if st.st_mode & 0o077:
+        raise ScenarioError(f"zenoh.password_file: {path} is readable by group or others (chmod 600 it)")
+    if not pw:
+        raise ScenarioError(f"zenoh.password_file: {path} is empty")
+    return pw
+
+
 def open_session(z: ZenohConfig) -> zenoh.Session:
-    return zenoh.open(zenoh_config(z))
+    """Raises ConnectionError naming the endpoints (and the user) when Zenoh refuses: in client mode that
+    includes a router that rejects the credentials."""
+    cfg = zenoh_config(z)
+    try:
+        return zenoh.open(cfg)
+    except zenoh.ZError as e:
+        who = f" as user {z.user!r}" if z.user else ""
+        first = str(e).split(" at ")[0]
+        raise ConnectionError(f"cannot open a Zenoh {z.mode} session{who} (connect {z.connect or 'none'}): {first}"
+                              + (" - wrong credentials, or the router is down" if z.mode == "client" else "")) from None
 
 
 def free_tcp_port() -> int:

@@ -4,7 +4,7 @@ Threads:
 * the loop thread reads the newest measurement and neighbour messages (ring-of-one subscribers
   polled with try_recv, no callbacks), steps the core, publishes du/dt; it records timing into
   preallocated arrays and never formats JSON, logs or serves queries;
-* the query thread answers ``status`` and ``config`` queries from a channel; a config set is
+* three query threads answer ``status``, ``config`` and ``config/set`` from channels; a config set is
   validated there and handed to the loop, which applies it at the next tick boundary;
 * the main thread waits for SIGINT/SIGTERM and shuts down within one period.
 
@@ -139,14 +139,14 @@ class Daemon:
         self.cmd_pub = publisher(s, key(c.prefix, c.id, "cmd"))
         self.z_pub = publisher(s, key(c.prefix, c.id, "z"))
         self.neighbours = [Neighbour(n, latest(s, key(c.prefix, n, "z"))) for n in c.neighbours]
-        self.q_status = s.declare_queryable(key(c.prefix, c.id, "status"), zenoh.handlers.FifoChannel(64))
-        self.q_config = s.declare_queryable(key(c.prefix, c.id, "config"), zenoh.handlers.FifoChannel(64))
+        # config/set is a key of its own so that a router's ACL can let only operators set (README "Security")
+        serve = {"status": self._status_reply, "config": self._config_reply, "config/set": self._config_set_reply}
+        self.queryables = {leaf: s.declare_queryable(key(c.prefix, c.id, leaf), zenoh.handlers.FifoChannel(64))
+                           for leaf in serve}
         self.token = s.liveliness().declare_token(key(c.prefix, c.id, "alive"))
         self.recorder = self._open_recorder() if c.log_dir else None
-        self._threads = [threading.Thread(target=self._serve, args=(self.q_status, self._status_reply),
-                                          name="status", daemon=True),
-                         threading.Thread(target=self._serve, args=(self.q_config, self._config_reply),
-                                          name="config", daemon=True)]
+        self._threads = [threading.Thread(target=self._serve, args=(self.queryables[leaf], fn), name=leaf,
+                                          daemon=True) for leaf, fn in serve.items()]
         for t in self._threads:
             t.start()
         self.state = "active"
@@ -520,15 +520,18 @@ class Daemon:
         return True, self.status()
 
     def _config_reply(self, query) -> tuple[bool, dict]:
-        params = str(query.parameters)
-        if "set" not in params.split(";")[0].split("&") and query.payload is None:
-            return True, {"controller": self.core.cfg.model_dump(), "state": self.state,
-                          "config_version": self.config_version}
+        if query.payload is not None or "set" in str(query.parameters).split(";")[0].split("&"):
+            where = key(self.cfg.prefix, self.cfg.id, "config/set")
+            return False, {"error": f"config is read-only here; sets go to {where}"}
+        return True, {"controller": self.core.cfg.model_dump(), "state": self.state,
+                      "config_version": self.config_version}
+
+    def _config_set_reply(self, query) -> tuple[bool, dict]:
         try:
             req = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
-            sets = req.get("set", [])
-            if not isinstance(sets, list) or not all(isinstance(x, str) for x in sets):
-                raise ScenarioError("set: expected a list of 'key=value' strings")
+            sets = req.get("set") if isinstance(req, dict) else None
+            if not isinstance(sets, list) or not sets or not all(isinstance(x, str) for x in sets):
+                raise ScenarioError("set: expected a non-empty list of 'key=value' strings, as {\"set\": [...]}")
         except (ValueError, ScenarioError) as e:
             return False, {"error": str(e)}
         return self.apply_sets(sets)
