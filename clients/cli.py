@@ -276,6 +276,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from .bench_recorder import bench_recorder
 
         res = bench_recorder(seconds=args.seconds)
+    elif args.what == "recovery":
+        from .faults import recovery
+
+        scn = _load(args.scenario or str(EMBEDDED / "demo.toml"), list(args.set or []))
+        res = recovery(scn, progress=lambda m: print(m, file=sys.stderr, flush=True))
     elif args.what == "latency":
         from .bench_latency import bench_latency
 
@@ -544,8 +549,9 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="benchmarks: 'sim' (real-time ratio), 'core' (per-step cost), "
                                      "'latency' (daemon round trip vs bare Zenoh echo), "
                                      "'recorder' (10 kHz stream set vs bare writer), 'soak' (RSS, drops, "
-                                     "overruns over minutes)")
-    b.add_argument("what", choices=["sim", "core", "latency", "recorder", "soak"])
+                                     "overruns over minutes), 'recovery' (kill -9 plant / neighbour, time "
+                                     "back to +-2 %%)")
+    b.add_argument("what", choices=["sim", "core", "latency", "recorder", "soak", "recovery"])
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
     b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
     b.add_argument("--seconds", type=float, default=10.0, help="recorder: paced run length (default %(default)s)")

@@ -15,10 +15,17 @@ from pathlib import Path
 from schemas.component import ComponentConfig, LoadPeerConfig, PlantPeerConfig, config_from_dict
 from schemas.scenario import Scenario
 
+SHUTDOWN_GRACE_S = 5
+
 
 def install_stop_handlers(stop: threading.Event) -> None:
+    """SIGINT/SIGTERM ask for a clean stop; if the stop hangs (we saw a plant stuck in Zenoh's session close,
+    a GIL/callback deadlock), SIGALRM's default action ends the process after SHUTDOWN_GRACE_S: it needs
+    no Python code, so it works even when the interpreter cannot run any."""
+
     def handler(signum, frame):  # noqa: ARG001
         stop.set()
+        signal.alarm(SHUTDOWN_GRACE_S)
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
@@ -167,11 +174,22 @@ def _tv(v) -> str:
     raise TypeError(type(v))
 
 
+def child_env() -> dict:
+    """The environment for child ``python -m clients.cli`` processes: this checkout first on the path."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
 class Processes:
-    """Child processes that are stopped (SIGTERM, then SIGKILL) whatever happens."""
+    """Child processes that are stopped (SIGTERM, then SIGKILL) whatever happens, including a SIGTERM to
+    this process (in the main thread it becomes SystemExit, so the ``with`` block still cleans up)."""
 
     def __init__(self):
         self.procs: list[tuple[str, subprocess.Popen]] = []
+        self._old_term = None
+        if threading.current_thread() is threading.main_thread():
+            self._old_term = signal.signal(signal.SIGTERM, _exit_on_term)
 
     def start(self, name: str, args: list[str], **kw) -> subprocess.Popen:
         p = subprocess.Popen([sys.executable, "-m", "clients.cli", *args], stdout=subprocess.PIPE,
@@ -179,25 +197,46 @@ class Processes:
         self.procs.append((name, p))
         return p
 
-    def stop_all(self, timeout_s: float = 3.0) -> dict[str, tuple[int, str, str]]:
+    def stop_all(self, timeout_s: float = 8.0) -> dict[str, tuple[int, str, str]]:
+        """SIGTERM all, wait up to timeout_s in total, SIGKILL the rest. Never blocks on a pipe that a
+        grandchild still holds open."""
         for _, p in self.procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
         out = {}
         for name, p in self.procs:
             try:
-                so, se = p.communicate(timeout=timeout_s)
+                so, se = p.communicate(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 p.kill()
-                so, se = p.communicate()
+                try:
+                    so, se = p.communicate(timeout=2.0)
+                except subprocess.TimeoutExpired:
+                    for f in (p.stdout, p.stderr):
+                        if f is not None:
+                            f.close()
+                    p.wait(5.0)
+                    so, se = "", ""
             out[name] = (p.returncode, so, se)
         return out
 
     def __enter__(self):
         return self
 
+    def close(self) -> dict[str, tuple[int, str, str]]:
+        out = self.stop_all()
+        if self._old_term is not None:
+            signal.signal(signal.SIGTERM, self._old_term)
+            self._old_term = None
+        return out
+
     def __exit__(self, *exc):
-        self.stop_all()
+        self.close()
+
+
+def _exit_on_term(signum, frame):
+    raise SystemExit(128 + signum)
 
 
 def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | None, duration_s: float | None,
@@ -224,8 +263,7 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
         paths[name] = tmp / f"{name}.toml"
         paths[name].write_text(_toml(d))
     stats_path = tmp / "daemon-status.json"
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    env = child_env()
     with Processes() as procs:
         if secure:
             procs.start("router", ["router", "--config", str(creds["router"])], env=env)

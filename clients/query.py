@@ -21,24 +21,30 @@ def query(z: ZenohConfig, prefix: str, component: str, what: str, sets: list[str
     try:
         if what == "interaction":
             return _interaction(session, prefix, component, timeout_s)
-        if sets:
-            what = "config/set"
-        selector = key(prefix, component, what)
-        payload = json.dumps({"set": sets}) if sets else None
-        deadline = time.monotonic() + timeout_s
-        while True:  # the route to a just-started peer can take a moment to appear
-            replies = list(session.get(selector, payload=payload, timeout=max(0.2, deadline - time.monotonic())))
-            if replies or time.monotonic() >= deadline:
-                break
-            time.sleep(0.05)
-        for r in replies:
-            if r.ok is not None:
-                return json.loads(r.ok.payload.to_bytes())
-            raise QueryError(_err_text(r.err.payload.to_bytes()))
-        raise QueryError(f"no answer from {selector} within {timeout_s:g} s (is the controller running and "
-                         "reachable? see --connect; behind a router with access control, may this user ask it?)")
+        return ask(session, prefix, component, what, sets, timeout_s)
     finally:
         session.close()
+
+
+def ask(session, prefix: str, component: str, what: str, sets: list[str] | None = None,
+        timeout_s: float = 2.0) -> dict:
+    """One status/config query on an open session (``query`` opens and closes its own)."""
+    if sets:
+        what = "config/set"
+    selector = key(prefix, component, what)
+    payload = json.dumps({"set": sets}) if sets else None
+    deadline = time.monotonic() + timeout_s
+    while True:  # the route to a just-started peer can take a moment to appear
+        replies = list(session.get(selector, payload=payload, timeout=max(0.2, deadline - time.monotonic())))
+        if replies or time.monotonic() >= deadline:
+            break
+        time.sleep(0.05)
+    for r in replies:
+        if r.ok is not None:
+            return json.loads(r.ok.payload.to_bytes())
+        raise QueryError(_err_text(r.err.payload.to_bytes()))
+    raise QueryError(f"no answer from {selector} within {timeout_s:g} s (is the controller running and "
+                     "reachable? see --connect; behind a router with access control, may this user ask it?)")
 
 
 def _err_text(b: bytes) -> str:

@@ -97,9 +97,11 @@ class ComponentConfig(Named):
     meas_v_max_V: Annotated[float, Field(gt=0)] = Field(default=1000.0, description="reject measurements with v above")
     meas_i_max_A: Annotated[float, Field(gt=0)] = Field(default=1000.0, description="reject |i|, |i_load| above")
     stale_periods: Annotated[int, Field(ge=1, le=100000)] = Field(
-        default=10, description="clock trigger: this many periods without a measurement -> degraded, du/dt = 0")
-    local_reference_W: float | None = Field(
-        default=None, description="load power to assume while every neighbour is silent (None: hold du/dt = 0)")
+        default=10, description="this many periods without a measurement -> degraded, du/dt = 0 "
+                                "(sample trigger: at least 50 ms)")
+    local_reference_W: float | Literal["measured"] | None = Field(
+        default=None, description="while a neighbour is silent or gone: a load power to assume (W), or 'measured' "
+                                  "(v * i_load at this component's port); None: hold du/dt = 0")
     log_dir: str | None = Field(default=None, description="record to <log_dir>/<id>-<UTC time>.mcap (off the loop)")
     log_est_every: Annotated[int, Field(ge=1, le=100000)] = Field(default=10, description="estimator record decimation")
     log_rotate_bytes: Annotated[int, Field(ge=1 << 20)] | None = Field(

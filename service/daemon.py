@@ -84,8 +84,11 @@ class LoopStats:
         return out
 
 
+SAMPLE_STALE_MIN_NS = 50_000_000  # sample trigger: a lockstep plant may pause this long without being stale
+
 class Neighbour:
-    __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "window", "forecast", "count", "topic")
+    __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "window", "forecast", "count", "topic",
+                 "alive", "alive_seen", "lagging")
 
     def __init__(self, nid: str, sub):
         self.id, self.sub = nid, sub
@@ -96,6 +99,11 @@ class Neighbour:
         self.forecast = (0.0, 0.0, 0.0, 0.0)
         self.count = 0
         self.topic = ""
+        # its liveliness token: None until seen either way, then True/False (set by Zenoh's callback thread);
+        # alive_seen is what the loop last logged
+        self.alive: bool | None = None
+        self.alive_seen: bool | None = None
+        self.lagging = False  # lockstep: timed out once; not waited for again until it catches up
 
 
 class Daemon:
@@ -105,6 +113,8 @@ class Daemon:
         self.core = ControlCore(cfg.controller, cfg.model, self.period_s, cfg.delay_samples)
         self.stats = LoopStats(cfg.loop.stats_window)
         self.state = "configured"
+        self.log_error = ""  # the recorder could not even start
+        self.alive_sub = None
         self.rejected: dict[str, int] = {}
         self.last_reject = ""
         self.last_sample: tuple | None = None
@@ -144,7 +154,20 @@ class Daemon:
         self.queryables = {leaf: s.declare_queryable(key(c.prefix, c.id, leaf), zenoh.handlers.FifoChannel(64))
                            for leaf in serve}
         self.token = s.liveliness().declare_token(key(c.prefix, c.id, "alive"))
-        self.recorder = self._open_recorder() if c.log_dir else None
+        # neighbours' liveliness tokens: a channel the loop polls (no Python callback: dropping one at close
+        # can deadlock zenoh-python against the GIL)
+        self._by_id = {nb.id: nb for nb in self.neighbours}
+        self.alive_sub = (s.liveliness().declare_subscriber(key(c.prefix, "*", "alive"),
+                                                            zenoh.handlers.FifoChannel(64), history=True)
+                          if self.neighbours else None)
+        self.recorder = None
+        self.log_error = ""
+        if c.log_dir:
+            try:
+                self.recorder = self._open_recorder()
+            except OSError as e:  # no shared memory, no process: control runs without a log, and says so
+                self.log_error = f"recorder could not start: {e}"
+                print(f"energyctl[{c.id}]: logging degraded: {self.log_error}", file=sys.stderr, flush=True)
         self._threads = [threading.Thread(target=self._serve, args=(self.queryables[leaf], fn), name=leaf,
                                           daemon=True) for leaf, fn in serve.items()]
         for t in self._threads:
@@ -259,6 +282,14 @@ class Daemon:
         spin = self.cfg.loop.wait == "spin"
         sub = self.meas_sub
         prev = idle = 0
+        # no sample for this long -> degraded (every answered sample was already answered: nothing to publish)
+        stale_ns = max(int(self.cfg.stale_periods * self.period_s * 1e9), SAMPLE_STALE_MIN_NS)
+
+        def check_stale(now: int) -> None:
+            self._poll_neighbours(now)
+            if self.state == "active" and prev and now - prev > stale_ns:
+                self._degrade("meas: stale", publish_hold=False)
+
         while not stop.is_set():
             if self._pending is not None or self._pending_state is not None:
                 self._apply_pending()
@@ -269,8 +300,8 @@ class Daemon:
                     break
                 if m is None:
                     idle += 1
-                    if idle & 0x3FF == 0:  # keep neighbour freshness current while no sample comes
-                        self._poll_neighbours(now_ns())
+                    if idle & 0x3FF == 0:  # keep neighbour freshness and staleness current while no sample comes
+                        check_stale(now_ns())
                     continue
                 idle = 0
                 payload = m.payload.to_bytes()
@@ -278,7 +309,7 @@ class Daemon:
                 try:
                     item = q.get(timeout=0.05)
                 except Empty:
-                    self._poll_neighbours(now_ns())
+                    check_stale(now_ns())
                     continue
                 while not q.empty():  # newest wins
                     item = q.get_nowait()
@@ -287,12 +318,19 @@ class Daemon:
             if lockstep and self.neighbours:
                 seq = int.from_bytes(payload[2:10], "little")
                 deadline = start + timeout_ns
-                while any(nb.seq < seq for nb in self.neighbours) and not stop.is_set():
+                nbs = self.neighbours
+                while any(nb.seq < seq and nb.alive is not False and not nb.lagging for nb in nbs) \
+                        and not stop.is_set():
                     self._poll_neighbours(now_ns())
-                    if now_ns() > deadline:
+                    if now_ns() > deadline:  # a hung neighbour stalls one tick, not every tick
                         stats.lockstep_timeouts += 1
+                        for nb in nbs:
+                            nb.lagging = nb.lagging or nb.seq < seq
                         break
                     time.sleep(20e-6)
+                for nb in nbs:  # keeping pace again (it answered the previous sample): wait for it from now on
+                    if nb.lagging and nb.seq >= seq - 1:
+                        nb.lagging = False
             t_exec = now_ns()
             self._tick(payload, t_exec)
             end = now_ns()
@@ -311,6 +349,11 @@ class Daemon:
             self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "reject", reason))
 
     def _poll_neighbours(self, now: int) -> None:
+        if self.alive_sub is not None:
+            while (tok := self.alive_sub.try_recv()) is not None:  # tokens appear and vanish rarely
+                nb = self._by_id.get(str(tok.key_expr).split("/")[-2])
+                if nb is not None:
+                    nb.alive = tok.kind == zenoh.SampleKind.PUT
         for nb in self.neighbours:
             z = nb.sub.try_recv()
             if z is None:
@@ -341,12 +384,18 @@ class Daemon:
         if self._pending_state is not None:
             self.state, self._pending_state = self._pending_state, None
 
-    def _degrade(self, why: str) -> None:
+    def _neighbour_event(self, nb: Neighbour, t: float) -> None:
+        nb.alive_seen = nb.alive
+        if self.recorder is not None and nb.alive is not None:
+            what = "neighbour_alive" if nb.alive else "neighbour_gone"
+            self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), what, nb.id))
+
+    def _degrade(self, why: str, publish_hold: bool = True) -> None:
         """Hold the source (du/dt = 0) until fresh measurements return; then back to active by itself."""
         self.state = "degraded"
         self.degraded_reason = why
         ls = self.last_sample
-        if ls is not None:
+        if ls is not None and publish_hold:
             self.cmd_pub.put(CMD.encode(ls[0], ls[1], 0.0, True))
         if self.recorder is not None:
             t = ls[1] if ls else 0.0
@@ -394,13 +443,17 @@ class Daemon:
         P_in = P_in_dot = 0.0
         fresh = True
         for nb in self.neighbours:
-            if nb.count == 0 or now - nb.rx_ns > stale_ns:
+            if nb.count == 0 or now - nb.rx_ns > stale_ns or nb.alive is False:
                 fresh = False
+            if nb.alive is not nb.alive_seen:
+                self._neighbour_event(nb, v[1])
             P_in -= nb.P
             P_in_dot -= nb.P_dot
         self.reference = "neighbours" if fresh else "none"
-        if not fresh and self.cfg.local_reference_W is not None:
-            P_in, P_in_dot, fresh = -self.cfg.local_reference_W, 0.0, True  # flagged in status
+        local = self.cfg.local_reference_W
+        if not fresh and local is not None:  # flagged in status
+            P_in = -v[3] * v[5] if local == "measured" else -local
+            P_in_dot, fresh = 0.0, True
             self.reference = "local"
         s = Sample(seq, v[1], v[2], v[3], v[4], v[5])
         stepped = self.state == "active" and fresh
@@ -503,15 +556,17 @@ class Daemon:
                                                       "Qdot_r_out_port")} if est else None,
             "z_out": list(self.core.estimator.z_out),
             "y_ref": self.core.out.y_ref, "u_z": self.core.out.u_z,
-            "neighbours": {nb.id: {"messages": nb.count, "age_s": (now - nb.rx_ns) / 1e9 if nb.count else None,
-                                   "fresh": nb.count > 0 and now - nb.rx_ns <= c.neighbour_stale_s * 1e9,
+            "neighbours": {nb.id: {"messages": nb.count, "age_s": max(0, now - nb.rx_ns) / 1e9 if nb.count else None,
+                                   "fresh": nb.count > 0 and now - nb.rx_ns <= c.neighbour_stale_s * 1e9
+                                   and nb.alive is not False, "alive": nb.alive, "lagging": nb.lagging,
                                    "P_r_out": nb.P} for nb in self.neighbours},
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
                             "recent": [v.__dict__ for v in self.feas.violations[-5:]]},
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
-            "logging": None if self.recorder is None else {
+            "logging": ({"path": self.log_path, "written": 0, "drops": {}, "state": "degraded", "error": self.log_error}
+                        if self.log_error else None) if self.recorder is None else {
                 "path": self.log_path, "written": self.recorder.written, "drops": dict(self.recorder.drops),
                 "state": "degraded" if self.recorder.failed else "ok", "error": self.recorder.error},
         }

@@ -86,8 +86,8 @@ class RingRecorder:
             return self.error is not None
         if self._buf[17] or not self._proc.is_alive():
             if self.error is None:
-                try:
-                    self.error = self._result.get_nowait()["error"]
+                try:  # the writer raises the flag, then sends its reason down a pipe: give it a moment
+                    self.error = self._result.get(timeout=1.0)["error"]
                 except Exception:  # noqa: BLE001 - no message (killed)
                     self.error = f"recorder process ended with code {self._proc.exitcode}"
             return True
@@ -133,9 +133,17 @@ class RingRecorder:
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
             rotate_s=None) -> None:
     import importlib
+    import os
     from queue import Empty
 
     from service.recorder import McapFile
+
+    # do not hold the recorded process's stdout/stderr: whoever reads those pipes must see them close when
+    # that process ends (errors go back through ``result``)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.dup2(devnull, 2)
+    os.close(devnull)
 
     shm = shared_memory.SharedMemory(name=shm_name)
     buf = shm.buf
@@ -192,8 +200,6 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             paths.append(nxt)
             f = open_part(nxt, len(paths) - 1)
             part_bytes, part_t0 = 0, t
-
-    import os
 
     parent = os.getppid()
     r = 0
