@@ -16,12 +16,19 @@ def scn():
     return load_scenario(SCENARIOS / "paper-constant-load.toml")
 
 
+def running(rig: Rig, t_s: float = 0.02, **daemon) -> dict:
+    """Start controller, load and plant; the controller's status once plant time reached t_s."""
+    rig.start("daemon", **daemon)
+    rig.start("load")
+    rig.start("plant")
+    st = rig.wait_status(lambda s: rig.sample_t(s) >= t_s, 60.0)
+    assert st, "the stack did not start"
+    return st
+
+
 def test_kill9_plant_degrades_and_a_new_plant_reinitialises_the_controller(tmp_path):
     with Rig(scn(), tmp_path, duration_s=5.0) as rig:
-        rig.start("daemon")
-        rig.start("load")
-        rig.start("plant")
-        assert rig.wait_status(lambda s: rig.sample_t(s) >= 0.02, 60.0)
+        running(rig)
         rig.signal("plant", signal.SIGKILL)
         st = rig.wait_status(lambda s: s["state"] == "degraded", 10.0)
         assert st and st["degraded_reason"] == "meas: stale"
@@ -39,10 +46,7 @@ def test_kill9_plant_degrades_and_a_new_plant_reinitialises_the_controller(tmp_p
 
 def test_sigstop_neighbour_is_not_waited_for_and_comes_back_on_sigcont(tmp_path):
     with Rig(scn(), tmp_path, duration_s=5.0, comp={"local_reference_W": "measured"}) as rig:
-        rig.start("daemon")
-        rig.start("load")
-        rig.start("plant")
-        assert rig.wait_status(lambda s: rig.sample_t(s) >= 0.02, 60.0)
+        running(rig)
         rig.signal("load", signal.SIGSTOP)
         try:
             # its liveliness token stays (a hung process keeps its lease), so freshness decides
@@ -62,10 +66,7 @@ def test_sigstop_neighbour_is_not_waited_for_and_comes_back_on_sigcont(tmp_path)
 
 def test_kill9_neighbour_token_gone_then_back(tmp_path):
     with Rig(scn(), tmp_path, duration_s=5.0) as rig:
-        rig.start("daemon")
-        rig.start("load")
-        rig.start("plant")
-        assert rig.wait_status(lambda s: rig.sample_t(s) >= 0.02, 60.0)
+        running(rig)
         rig.signal("load", signal.SIGKILL)
         st = rig.wait_status(lambda s: s["neighbours"]["load"]["alive"] is False, 10.0)
         assert st and st["reference"] == "none" and st["last_command"]["du_dt"] == 0.0  # held
@@ -81,11 +82,7 @@ def test_kill9_neighbour_token_gone_then_back(tmp_path):
 def test_router_restart_sessions_reconnect_and_the_loop_continues(tmp_path):
     with Rig(scn(), tmp_path, router=True, duration_s=5.0) as rig:
         rig.start("router")
-        rig.start("daemon")
-        rig.start("load")
-        rig.start("plant")
-        st = rig.wait_status(lambda s: rig.sample_t(s) >= 0.02, 60.0)
-        assert st
+        st = running(rig)
         rig.signal("router", signal.SIGKILL)
         ticks = rig.status(timeout_s=0.3)
         assert ticks is None  # nobody to route the query
@@ -121,9 +118,6 @@ def test_log_directory_filling_up_mid_run_degrades_logging_not_control(tmp_path)
 
 def test_no_room_for_the_recorder_at_start_degrades_logging_not_control(tmp_path):
     with Rig(scn(), tmp_path, duration_s=30.0, comp={"log_queue": 1024}) as rig:
-        rig.start("daemon", popen={"preexec_fn": file_size_cap(64_000)})  # not even the ring fits
-        rig.start("load")
-        rig.start("plant")
-        st = rig.wait_status(lambda s: rig.sample_t(s) >= 0.01, 60.0)
-        assert st and st["state"] == "active"
+        st = running(rig, 0.01, popen={"preexec_fn": file_size_cap(64_000)})  # not even the ring fits
+        assert st["state"] == "active"
         assert st["logging"]["state"] == "degraded" and "recorder could not start" in st["logging"]["error"]
