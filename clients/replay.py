@@ -5,6 +5,11 @@ what else the core was given (``.../z_in``: P^{r,in}, dP^{r,in}/dt, whether it s
 answered (``.../cmd``), plus config changes (``.../events``, kind "config", applied before the seq
 they name) and a ``core`` metadata record (controller config, model, period, delay). Replay rebuilds
 the core from that record and compares every du/dt with ``==``: bit for bit.
+
+A plant restart (a measurement with seq 0 after higher seqs, the daemon's own rule) begins a new epoch;
+ticks are keyed by (epoch, seq) and the core is re-initialised at each new epoch, as the daemon did.
+Epochs come from the measurement stream, which the recorder writes in tick order; events travel on a
+side queue and are written when the ring is idle, so their place in the file is not their place in time.
 """
 
 from __future__ import annotations
@@ -25,13 +30,18 @@ class ReplayError(RuntimeError):
     pass
 
 
-def read_log(path: str | Path) -> tuple[dict, dict[int, dict], dict[int, dict], dict[int, dict], dict[int, list]]:
-    """(core metadata, meas by seq, z_in by seq, cmd by seq, config events by seq); reads in file order,
-    so a log whose writer was killed (no summary) still replays up to its last complete chunk."""
-    meas: dict[int, dict] = {}
-    zin: dict[int, dict] = {}
-    cmd: dict[int, dict] = {}
-    cfg_events: dict[int, list] = {}
+Key = tuple[int, int]  # (epoch, seq)
+
+
+def read_log(path: str | Path, epoch: int = 0, last_seq: int = -1) -> tuple[
+        dict, dict[Key, dict], dict[Key, dict], dict[Key, dict], dict[Key, list], tuple[int, int]]:
+    """(core metadata, meas, z_in, cmd, config events, (last epoch, last seq)), keyed by (epoch, seq); reads
+    in file order, so a log whose writer was killed (no summary) still replays up to its last complete
+    chunk. ``epoch``, ``last_seq``: where the previous part of a rotated log ended."""
+    meas: dict[Key, dict] = {}
+    zin: dict[Key, dict] = {}
+    cmd: dict[Key, dict] = {}
+    cfg: list[dict] = []
     core = None
     with open(path, "rb") as f:
         reader = make_reader(f)
@@ -46,16 +56,24 @@ def read_log(path: str | Path) -> tuple[dict, dict[int, dict], dict[int, dict], 
                 continue
             d = json.loads(message.data)
             if leaf == "meas":
-                meas[d["seq"]] = d
+                if d["seq"] == 0 and last_seq > 0:
+                    epoch += 1
+                last_seq = d["seq"]
+                meas[epoch, d["seq"]] = d
             elif leaf == "z_in":
-                zin[d["seq"]] = d
+                zin[epoch, d["seq"]] = d
             elif leaf == "cmd":
-                cmd[d["seq"]] = d
+                cmd[epoch, d["seq"]] = d
             elif d.get("kind") == "config":
-                cfg_events.setdefault(d["seq"], []).append(json.loads(d["detail"]))
+                cfg.append(d)
     if core is None:
         raise ReplayError(f"{path}: no 'core' metadata record (not an energyctl log, or written before replay support)")
-    return core, meas, zin, cmd, cfg_events
+    cfg_events: dict[Key, list] = {}
+    for d in cfg:  # a config change belongs to the epoch of the sample before it (the daemon stamps that t)
+        s = d["seq"]
+        eps = [e for e in range(epoch + 1) for k in (s - 1, s) if (e, k) in meas and meas[e, k]["t"] == d["t"]]
+        cfg_events.setdefault((eps[0] if eps else epoch, d["seq"]), []).append(json.loads(d["detail"]))
+    return core, meas, zin, cmd, cfg_events, (epoch, last_seq)
 
 
 def replay(path: str | Path | list, overrides: list[str] | None = None, controller: str | None = None,
@@ -63,9 +81,9 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     """Replay one log, or the parts of a rotated log in order (one core across all of them)."""
     t0 = time.perf_counter()
     parts = [path] if isinstance(path, str | Path) else list(path)
-    core_meta, meas, zin, cmd, cfg_events = read_log(parts[0])
+    core_meta, meas, zin, cmd, cfg_events, (epoch, last) = read_log(parts[0])
     for extra in parts[1:]:
-        _, m2, z2, c2, e2 = read_log(extra)
+        _, m2, z2, c2, e2, (epoch, last) = read_log(extra, epoch, last)
         meas.update(m2)
         zin.update(z2)
         cmd.update(c2)
@@ -84,21 +102,26 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     replayed: list[tuple] = []
     n = len(seqs)
     step_report = max(1, n // 20)
-    for j, seq in enumerate(seqs):
-        for c in cfg_events.get(seq, []):
+    cur_epoch = 0
+    for j, (ep, seq) in enumerate(seqs):
+        if ep != cur_epoch:  # the plant restarted: the daemon re-initialised its core here
+            core.reset()
+            cur_epoch = ep
+        for c in cfg_events.get((ep, seq), []):
             if not what_if:
                 core.set_gains(ControllerConfig.model_validate(c))
-        m, z = meas[seq], zin[seq]
+        m, z = meas[ep, seq], zin[ep, seq]
         if z["stepped"]:
             o = core.step(Sample(seq, m["t"], m["i"], m["v"], m["u"], m["i_load"]),
                           Incoming(z["P_r_in"], z["P_r_in_dot"]))
             du = o.du_dt
         else:
             du = 0.0
-        replayed.append((seq, m["t"], du))
-        logged = cmd.get(seq)
+        replayed.append(((ep, seq), m["t"], du))
+        logged = cmd.get((ep, seq))
         if first is None and not what_if and logged is not None and logged["du_dt"] != du:
-            first = {"seq": seq, "t": m["t"], "field": "du_dt", "logged": logged["du_dt"], "replayed": du}
+            first = {"seq": seq, "epoch": ep, "t": m["t"], "field": "du_dt", "logged": logged["du_dt"],
+                     "replayed": du}
         if progress and n > 20_000 and j % step_report == 0:
             sys.stderr.write(f"\rreplay {100 * j // n:3d} %")
             sys.stderr.flush()
@@ -107,6 +130,7 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     wall = time.perf_counter() - t0
     span = (meas[seqs[-1]]["t"] - meas[seqs[0]]["t"]) if seqs else 0.0
     res = {"log": str(path), "ticks": n, "compared": sum(1 for s in seqs if s in cmd) if not what_if else 0,
+           "plant_restarts": epoch,
            "identical": first is None and not what_if, "first_divergence": first, "wall_s": wall,
            "log_span_s": span, "speed_x_realtime": span / wall if wall > 0 else None}
     if out:
@@ -132,11 +156,15 @@ def _write(out: str, core_meta: dict, ctl: ControllerConfig, replayed, meas, zin
     f.metadata("core", {"json": core_metadata(ctl, model, core_meta["period_s"], core_meta["delay_samples"])})
     f.metadata("replay", {"json": json.dumps({"what_if_of": core_meta})})
     for leaf, schema in (("meas", "energyctl.Measurement"), ("z_in", "energyctl.TickInput"),
-                         ("cmd", "energyctl.Command")):
+                         ("cmd", "energyctl.Command"), ("events", "energyctl.Event")):
         f.channel(f"replay/{leaf}", schema)
     zf = tuple(TickInput.model_fields)
-    for seq, t, du in replayed:
-        f.add("replay/meas", t, {k: meas[seq][k] for k in MEAS.fields})
-        f.add("replay/z_in", t, {k: zin[seq][k] for k in zf})
+    cur_epoch = 0
+    for (ep, seq), t, du in replayed:
+        if ep != cur_epoch:  # keep the epochs apart in the what-if log too
+            f.add("replay/events", t, {"t": t, "seq": 0, "kind": "plant_restart", "detail": "{}"})
+            cur_epoch = ep
+        f.add("replay/meas", t, {k: meas[ep, seq][k] for k in MEAS.fields})
+        f.add("replay/z_in", t, {k: zin[ep, seq][k] for k in zf})
         f.add("replay/cmd", t, dict(zip(CMD.fields, (seq, t, du, False), strict=True)))
     f.close()

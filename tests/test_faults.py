@@ -9,6 +9,7 @@ import signal
 from conftest import SCENARIOS
 
 from clients.faults import Rig, read_messages
+from clients.replay import replay
 from schemas.scenario import load_scenario
 
 
@@ -42,6 +43,9 @@ def test_kill9_plant_degrades_and_a_new_plant_reinitialises_the_controller(tmp_p
         kinds = [e["kind"] for e in read_messages(rig.daemon_log(), "/events")]
         assert "degraded" in kinds and "plant_restart" in kinds
         assert kinds.index("degraded") < kinds.index("plant_restart")
+        # the log replays bit for bit across the restart (seqs repeat: ticks are keyed by (epoch, seq))
+        r = replay(str(rig.daemon_log()), progress=False)
+        assert r["identical"] and r["plant_restarts"] == 1 and r["compared"] > 300, r
 
 
 def test_sigstop_neighbour_is_not_waited_for_and_comes_back_on_sigcont(tmp_path):
