@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import struct
+import threading
 import time
 from multiprocessing import shared_memory
 from pathlib import Path
@@ -67,6 +68,7 @@ class RingRecorder:
         self._written_final: int | None = None
         self.paths = [self.path]  # all parts, known at close
         self.error: str | None = None
+        self._error_lock = threading.Lock()
 
     @property
     def written(self) -> int:
@@ -85,11 +87,12 @@ class RingRecorder:
         if self._buf is None:
             return self.error is not None
         if self._buf[17] or not self._proc.is_alive():
-            if self.error is None:
-                try:  # the writer raises the flag, then sends its reason down a pipe: give it a moment
-                    self.error = self._result.get(timeout=1.0)["error"]
-                except Exception:  # noqa: BLE001 - no message (killed)
-                    self.error = f"recorder process ended with code {self._proc.exitcode}"
+            with self._error_lock:  # the status thread and the main thread both ask
+                if self.error is None:
+                    try:  # the writer raises the flag, then sends its reason down a pipe: give it a moment
+                        self.error = self._result.get(timeout=1.0)["error"]
+                    except Exception:  # noqa: BLE001 - no message (killed)
+                        self.error = f"recorder process ended with code {self._proc.exitcode}"
             return True
         return False
 
