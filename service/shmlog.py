@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import os
 import struct
 import threading
 import time
@@ -60,7 +61,7 @@ class RingRecorder:
         self._result = ctx.Queue()
         self._proc = ctx.Process(target=_writer, name="energyctl-recorder", daemon=True,
                                  args=(self._shm.name, slots, self.path, spec, metadata, chunk_size,
-                                       self._events, self._result, rotate_bytes, rotate_s))
+                                       self._events, self._result, rotate_bytes, rotate_s, os.getpid()))
         self._proc.start()
         self._buf = self._shm.buf
         self._w = 0
@@ -134,7 +135,7 @@ class RingRecorder:
 
 
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
-            rotate_s=None) -> None:
+            rotate_s=None, parent: int | None = None) -> None:
     import importlib
     import os
     from queue import Empty
@@ -204,7 +205,9 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             f = open_part(nxt, len(paths) - 1)
             part_bytes, part_t0 = 0, t
 
-    parent = os.getppid()
+    # the recorded process, named by itself: reading getppid() here would be too late if it died while this
+    # process was still importing (then the orphan never noticed, and idled forever)
+    parent = parent or os.getppid()
     r = 0
     try:
         while True:

@@ -125,3 +125,38 @@ def test_no_room_for_the_recorder_at_start_degrades_logging_not_control(tmp_path
         st = running(rig, 0.01, popen={"preexec_fn": file_size_cap(64_000)})  # not even the ring fits
         assert st["state"] == "active"
         assert st["logging"]["state"] == "degraded" and "recorder could not start" in st["logging"]["error"]
+
+
+def test_a_recorder_whose_process_dies_at_once_finishes_its_file_and_exits(tmp_path):
+    """The recorded process dies before its recorder has even started (SIGKILL right after spawning): the
+    orphan must still drain the ring, close a readable file and exit, not idle forever."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    from clients.live import wait_until
+
+    out = tmp_path / "orphan.mcap"
+    code = (f"import os, sys; sys.path.insert(0, {str(ROOT)!r})\n"
+            "from service.shmlog import RingRecorder\nfrom schemas.codec import CMD\n"
+            f"r = RingRecorder({str(out)!r}, {{'a/cmd': ('energyctl.Command', CMD)}}, {{}})\n"
+            "for k in range(100): r.offer('a/cmd', k * 1e-4, (k, k * 1e-4, 0.0, False))\n"
+            "print(r.pid, flush=True)\nos._exit(0)\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    pid = int(p.stdout.strip())
+
+    def gone() -> bool:
+        try:
+            os.kill(pid, 0)
+            return False
+        except ProcessLookupError:
+            return True
+
+    try:
+        assert wait_until(gone, 20.0), "the orphaned recorder is still running"
+    finally:
+        if not gone():
+            os.kill(pid, signal.SIGKILL)
+    assert [m["seq"] for m in read_messages(out, "/cmd")] == list(range(100))
