@@ -14,7 +14,7 @@ from queue import Empty
 
 import numpy as np
 
-from schemas.codec import CMD, MEAS, DecodeError, Z
+from schemas.codec import CMD, MEAS, PLANT, DecodeError, Z
 from schemas.component import LoadPeerConfig, PlantPeerConfig
 from service.bus import key, open_session, publisher, queued
 from service.plant import RLCPlant, Sensor, load_current
@@ -36,6 +36,18 @@ def wait_alive(session, key_expr: str, timeout_s: float, stop: threading.Event) 
     return False
 
 
+def _trace_recorder(cfg: PlantPeerConfig):
+    """The plant's trace (<prefix>/<controller>/meas, /cmd, /plant) through a recorder process."""
+    from service.shmlog import RingRecorder
+
+    base = f"{cfg.prefix}/{cfg.controller_id}"
+    out = Path(cfg.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    topics = {f"{base}/meas": ("energyctl.Measurement", MEAS), f"{base}/cmd": ("energyctl.Command", CMD),
+              f"{base}/plant": ("energyctl.Plant", PLANT)}
+    return RingRecorder(out, topics, {"plant_config": {"json": cfg.model_dump_json()}})
+
+
 def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> dict:
     """Run the plant for cfg.duration_s; returns metrics, latency and counters (and writes cfg.out)."""
     load = Profile(cfg.load, cfg.base_dir)
@@ -45,7 +57,14 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
     T = 1.0 / cfg.sample_rate_hz
     n_sub = substeps(T, cfg.plant_step_s)
     N = int(round(cfg.duration_s / T))
-    session = open_session(cfg.zenoh)
+    rec = _trace_recorder(cfg) if cfg.out else None
+    t_meas, t_cmd, t_plant = (f"{cfg.prefix}/{cfg.controller_id}/{leaf}" for leaf in ("meas", "cmd", "plant"))
+    try:
+        session = open_session(cfg.zenoh)
+    except BaseException:
+        if rec is not None:
+            rec.close()
+        raise
     try:
         pub = publisher(session, key(cfg.prefix, cfg.controller_id, "meas"))
         sub, cmd_q = queued(session, key(cfg.prefix, cfg.controller_id, "cmd"))
@@ -151,7 +170,16 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             um = plant.u_m(t)
             rows.append((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, du_for_k, r_apply,
                          cfg.plant.R_ohm * pi * pi - (pu + um) * pi, -P_l * cfg.v_ref_V / pv))
+            if rec is not None:  # streamed through the recorder process: a killed plant keeps its trace
+                rec.offer(t_meas, t, (k, t, s.i, s.v, s.u, s.i_load))
+                if du_for_k == du_for_k:  # NaN: no command answered this sample
+                    rec.offer(t_cmd, t, (k, t, du_for_k, False))
+                rec.offer(t_plant, t, (t, pi, pv, pu, P_l))
             plant.advance(r_apply, T, n_sub)
+    except BaseException:
+        if rec is not None:  # keep what was recorded
+            rec.close()
+        raise
     finally:
         session.close()
     cols = np.asarray(rows, dtype=float).reshape(len(rows), len(PLANT_TRACE)).T
@@ -170,12 +198,11 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
         late = trace["t"] >= 0.05
         dev = np.abs(trace["v"][late] - cfg.v_ref_V) / cfg.v_ref_V
         res["max_dev_after_50ms_pct"] = float(dev.max() * 100) if late.any() else None
-    if cfg.out:
-        out = Path(cfg.out)
-        from service.recorder import write_trace_mcap
-
-        write_trace_mcap(out, trace, {"plant_config": {"json": cfg.model_dump_json()},
-                                      "metrics": {"json": json.dumps(res)}}, f"{cfg.prefix}/{cfg.controller_id}")
+    if rec is not None:
+        rec.add_metadata("metrics", {"json": json.dumps(res)})
+        rec.close()
+        if rec.error:
+            print(f"energyctl plant: the trace log is incomplete: {rec.error}", file=log)
     res["trace"] = trace
     return res
 

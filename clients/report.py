@@ -155,7 +155,7 @@ def report(paths: list[str], out_dir: str) -> dict:
         title = "outgoing vs incoming interaction variable" + (" with feasibility bands" if any_bands else "")
         figs.append(_finish(plt, fig, ax, ("W", "W/s"), title, out / "interaction.png"))
 
-    metrics = [(lg["name"], lg["meta"].get("metrics") or summary_metrics(lg)) for lg in logs]
+    metrics = [(lg["name"], _logged_metrics(lg["meta"].get("metrics")) or summary_metrics(lg)) for lg in logs]
     keys = ["settle_s", "v_min", "v_max", "ss_error", "rms_du_dt", "max_abs_du_dt"]
     lines = ["# energyctl report", "", *(f"- `{lg['path']}`" + ("" if lg["complete"] else " (cut off; recovered "
                                                                   "up to its last complete chunk)") for lg in logs),
@@ -187,3 +187,10 @@ def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
+
+
+def _logged_metrics(m: dict | None) -> dict | None:
+    """A log's "metrics" record: sim writes the metrics themselves, the plant its whole result around them."""
+    if isinstance(m, dict) and isinstance(m.get("metrics"), dict):
+        return m["metrics"]
+    return m

@@ -14,7 +14,7 @@ from typing import get_args
 
 from pydantic import BaseModel
 
-from .messages import Command, Estimate, Interaction, LoopRecord, Measurement, TickInput
+from .messages import Command, Estimate, Interaction, LoopRecord, Measurement, Plant, TickInput
 
 VERSION = 1
 _TYPE_CODES = {int: "Q", float: "d", bool: "B"}
@@ -92,3 +92,4 @@ Z = Codec(Interaction, 0x21)
 TICK_IN = Codec(TickInput, 0x71)
 EST = Codec(Estimate, 0x51)
 LOOP = Codec(LoopRecord, 0x4C)
+PLANT = Codec(Plant, 0x50)  # only recorded (the HIL plant's true state), never sent

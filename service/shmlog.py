@@ -97,6 +97,10 @@ class RingRecorder:
             return True
         return False
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """A metadata record known only at the end (e.g. a run's metrics); written before the file closes."""
+        self._events.put((None, (name, data)))
+
     def offer(self, topic: str, t: float, values: tuple) -> None:
         if self._buf[17]:  # the writer failed: stop filling a ring nobody empties (control goes on)
             return
@@ -205,6 +209,16 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             f = open_part(nxt, len(paths) - 1)
             part_bytes, part_t0 = 0, t
 
+    def side(t, vals) -> int:
+        """One item of the side queue: an event message, or (t None) a metadata record."""
+        if t is None:
+            f.metadata(*vals)
+            return 0
+        if ev_topic:
+            f.add(ev_topic, t, dict(zip(ev_fields, vals, strict=True)))
+            return 1
+        return 0
+
     # the recorded process, named by itself: reading getppid() here would be too late if it died while this
     # process was still importing (then the orphan never noticed, and idled forever)
     parent = parent or os.getppid()
@@ -236,14 +250,17 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             _IDX.pack_into(buf, 8, r)
             try:
                 while True:
-                    t, vals = events.get_nowait()
-                    if ev_topic:
-                        f.add(ev_topic, t, dict(zip(ev_fields, vals, strict=True)))
-                        written += 1
+                    written += side(*events.get_nowait())
             except Empty:
                 pass
             if buf[16] or os.getppid() != parent:  # stopped, or the recorded process died: finish
                 if not buf[_HDR.size + (r % slots) * SLOT]:
+                    if buf[16]:  # items put just before the stop may still be in the queue's pipe
+                        try:
+                            while True:
+                                written += side(*events.get(timeout=0.1))
+                        except Empty:
+                            pass
                     break
                 continue
             time.sleep(0.0005)

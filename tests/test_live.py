@@ -193,11 +193,17 @@ def test_two_controlled_components_on_one_network_each_reproduce_their_own_run(t
         for n in stacks:
             plants.append(procs.start(f"plant{n}", ["plant", "--config", str(tmp_path / f"plant{n}.toml"), "--json"],
                                       env=env))
+        results = []
         for p in plants:
             so, se = p.communicate(timeout=120)
             assert p.returncode == 0, se[-800:]
-            res = json.loads(so.strip().splitlines()[-1])
-            assert res["counters"]["commands"] == 200 and res["counters"]["timeouts"] == 0
+            results.append(json.loads(so.strip().splitlines()[-1]))
+            assert results[-1]["counters"]["commands"] == 200 and results[-1]["counters"]["timeouts"] == 0
     for scn, out in stacks.values():
         v_live = np.array([m["v"] for m in read_topic(out, "/plant")])
         np.testing.assert_allclose(v_live, run(scn).trace["v"], rtol=1e-9, atol=0)
+    # the plant's log carries its metrics (written by its recorder at the end); the report shows them
+    from clients.report import report
+
+    rep = report([str(stacks[1][1])], str(tmp_path / "report"))
+    assert rep["metrics"]["plant1"]["v_min"] == results[1]["metrics"]["v_min"]
