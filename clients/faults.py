@@ -17,19 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.component import ZenohConfig
+from schemas.component import ZenohConfig, merge_tables
 from schemas.scenario import Scenario
 from service.bus import free_tcp_port
 from service.sim import BAND_SETTLE
 
 from .live import Processes, _toml, child_env, configs_from_scenario, port_open, wait_until
 from .query import QueryError, ask
-
-
-def _merge(d: dict, over: dict) -> dict:
-    for k, v in over.items():
-        d[k] = _merge(d.get(k) or {}, v) if isinstance(v, dict) else v
-    return d
 
 
 class Rig:
@@ -50,7 +44,8 @@ class Rig:
                 d["zenoh"] = {"mode": "client", "connect": [self.ep]}
         # a neighbour that comes back may miss the sample it is waited for: stall one tick briefly, not 2 s
         c["loop"]["lockstep_timeout_s"] = 0.3
-        self.cfg = {"daemon": _merge(c, comp or {}), "plant": _merge(p, plant or {}), "load": _merge(ld, load or {})}
+        self.cfg = {"daemon": merge_tables(c, comp or {}), "plant": merge_tables(p, plant or {}),
+                    "load": merge_tables(ld, load or {})}
         self.paths = {}
         for name, d in self.cfg.items():
             self.paths[name] = self.dir / f"{name}.toml"
@@ -73,7 +68,7 @@ class Rig:
         path = self.paths[name]
         if overrides:
             path = self.dir / f"{name}-{len(self.procs.procs)}.toml"
-            path.write_text(_toml(_merge(json.loads(json.dumps(self.cfg[name])), overrides)))
+            path.write_text(_toml(merge_tables(self.cfg[name], overrides)))
         args = {"daemon": ["run", "--config", str(path), "--stats-out", str(self.stats_path)],
                 "load": ["load", "--config", str(path)],
                 "plant": ["plant", "--config", str(path), "--json"]}[name]

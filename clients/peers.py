@@ -36,15 +36,14 @@ def wait_alive(session, key_expr: str, timeout_s: float, stop: threading.Event) 
     return False
 
 
-def _trace_recorder(cfg: PlantPeerConfig):
-    """The plant's trace (<prefix>/<controller>/meas, /cmd, /plant) through a recorder process."""
+def _trace_recorder(cfg: PlantPeerConfig, t_meas: str, t_cmd: str, t_plant: str):
+    """The plant's trace (measurements, commands, true state) through a recorder process."""
     from service.shmlog import RingRecorder
 
-    base = f"{cfg.prefix}/{cfg.controller_id}"
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    topics = {f"{base}/meas": ("energyctl.Measurement", MEAS), f"{base}/cmd": ("energyctl.Command", CMD),
-              f"{base}/plant": ("energyctl.Plant", PLANT)}
+    topics = {t_meas: ("energyctl.Measurement", MEAS), t_cmd: ("energyctl.Command", CMD),
+              t_plant: ("energyctl.Plant", PLANT)}
     return RingRecorder(out, topics, {"plant_config": {"json": cfg.model_dump_json()}})
 
 
@@ -57,17 +56,13 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
     T = 1.0 / cfg.sample_rate_hz
     n_sub = substeps(T, cfg.plant_step_s)
     N = int(round(cfg.duration_s / T))
-    rec = _trace_recorder(cfg) if cfg.out else None
-    t_meas, t_cmd, t_plant = (f"{cfg.prefix}/{cfg.controller_id}/{leaf}" for leaf in ("meas", "cmd", "plant"))
+    t_meas, t_cmd, t_plant = (key(cfg.prefix, cfg.controller_id, leaf) for leaf in ("meas", "cmd", "plant"))
+    rec = _trace_recorder(cfg, t_meas, t_cmd, t_plant) if cfg.out else None
+    session = None
     try:
         session = open_session(cfg.zenoh)
-    except BaseException:
-        if rec is not None:
-            rec.close()
-        raise
-    try:
-        pub = publisher(session, key(cfg.prefix, cfg.controller_id, "meas"))
-        sub, cmd_q = queued(session, key(cfg.prefix, cfg.controller_id, "cmd"))
+        pub = publisher(session, t_meas)
+        sub, cmd_q = queued(session, t_cmd)
         for peer in [cfg.controller_id, *cfg.wait_for]:
             if not wait_alive(session, key(cfg.prefix, peer, "alive"), 15.0, stop):
                 raise RuntimeError(f"{peer!r} not alive on the bus within 15 s")
@@ -181,7 +176,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             rec.close()
         raise
     finally:
-        session.close()
+        if session is not None:
+            session.close()
     cols = np.asarray(rows, dtype=float).reshape(len(rows), len(PLANT_TRACE)).T
     trace = {f: cols[j].copy() for j, f in enumerate(PLANT_TRACE)}
     diverged = bool(len(trace["v"]) and not (0.5 * cfg.v_ref_V < trace["v"].min()

@@ -186,13 +186,14 @@ def _read_toml(p: Path, kind: type[BaseModel], seen: list[Path]) -> dict:
     parent = _read_toml(p.parent / base, kind, [*seen, p.resolve()])
     if not own_base_dir and "base_dir" in parent:  # relative data paths stay those of the file that has them
         data["base_dir"] = parent["base_dir"]
-    return _merge(parent, data)
+    return merge_tables(parent, data)
 
 
-def _merge(base: dict, over: dict) -> dict:
+def merge_tables(base: dict, over: dict) -> dict:
+    """``over`` on top of ``base``, as a new dict: tables merge key by key, anything else replaces."""
     out = dict(base)
     for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        out[k] = merge_tables(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
 
 

@@ -86,6 +86,7 @@ class LoopStats:
 
 SAMPLE_STALE_MIN_NS = 50_000_000  # sample trigger: a lockstep plant may pause this long without being stale
 
+
 class Neighbour:
     __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "window", "forecast", "count", "topic",
                  "alive", "alive_seen", "lagging")
@@ -99,11 +100,15 @@ class Neighbour:
         self.forecast = (0.0, 0.0, 0.0, 0.0)
         self.count = 0
         self.topic = ""
-        # its liveliness token: None until seen either way, then True/False (set by Zenoh's callback thread);
-        # alive_seen is what the loop last logged
+        # its liveliness token: None until seen either way, then True/False (the loop polls the token
+        # channel in _poll_neighbours); alive_seen is what the loop last logged
         self.alive: bool | None = None
         self.alive_seen: bool | None = None
         self.lagging = False  # lockstep: timed out once; not waited for again until it catches up
+
+    def fresh(self, now_ns: int, stale_ns: int) -> bool:
+        """Heard from within stale_ns, and its liveliness token not gone."""
+        return self.count > 0 and now_ns - self.rx_ns <= stale_ns and self.alive is not False
 
 
 class Daemon:
@@ -161,7 +166,6 @@ class Daemon:
                                                             zenoh.handlers.FifoChannel(64), history=True)
                           if self.neighbours else None)
         self.recorder = None
-        self.log_error = ""
         if c.log_dir:
             try:
                 self.recorder = self._open_recorder()
@@ -443,7 +447,7 @@ class Daemon:
         P_in = P_in_dot = 0.0
         fresh = True
         for nb in self.neighbours:
-            if nb.count == 0 or now - nb.rx_ns > stale_ns or nb.alive is False:
+            if not nb.fresh(now, stale_ns):
                 fresh = False
             if nb.alive is not nb.alive_seen:
                 self._neighbour_event(nb, v[1])
@@ -557,19 +561,24 @@ class Daemon:
             "z_out": list(self.core.estimator.z_out),
             "y_ref": self.core.out.y_ref, "u_z": self.core.out.u_z,
             "neighbours": {nb.id: {"messages": nb.count, "age_s": max(0, now - nb.rx_ns) / 1e9 if nb.count else None,
-                                   "fresh": nb.count > 0 and now - nb.rx_ns <= c.neighbour_stale_s * 1e9
-                                   and nb.alive is not False, "alive": nb.alive, "lagging": nb.lagging,
+                                   "fresh": nb.fresh(now, int(c.neighbour_stale_s * 1e9)), "alive": nb.alive,
+                                   "lagging": nb.lagging,
                                    "P_r_out": nb.P} for nb in self.neighbours},
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
                             "recent": [v.__dict__ for v in self.feas.violations[-5:]]},
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
-            "logging": ({"path": self.log_path, "written": 0, "drops": {}, "state": "degraded", "error": self.log_error}
-                        if self.log_error else None) if self.recorder is None else {
-                "path": self.log_path, "written": self.recorder.written, "drops": dict(self.recorder.drops),
-                "state": "degraded" if self.recorder.failed else "ok", "error": self.recorder.error},
+            "logging": self._logging_status(),
         }
+
+    def _logging_status(self) -> dict | None:
+        rec = self.recorder
+        if rec is None:  # no log asked for, or a recorder that could not even start
+            return {"path": self.log_path, "written": 0, "drops": {}, "state": "degraded",
+                    "error": self.log_error} if self.log_error else None
+        return {"path": self.log_path, "written": rec.written, "drops": dict(rec.drops),
+                "state": "degraded" if rec.failed else "ok", "error": rec.error}
 
     def _status_reply(self, query) -> tuple[bool, dict]:
         return True, self.status()

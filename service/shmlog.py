@@ -141,7 +141,6 @@ class RingRecorder:
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
             rotate_s=None, parent: int | None = None) -> None:
     import importlib
-    import os
     from queue import Empty
 
     from service.recorder import McapFile
