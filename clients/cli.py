@@ -292,38 +292,55 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _bench_core(args: argparse.Namespace) -> dict:
-    """Per-step cost of ControlCore.step on a recorded closed-loop input stream."""
+    """Per-step cost of the core's step on a recorded closed-loop input stream: the compiled twin and the
+    Python reference in the same run (interleaved passes, so machine noise hits both alike)."""
     import gc
 
-    from service.core import ControlCore
+    from service.core import make_core
     from service.sim import run
     from service.types import Incoming, Sample
 
     path = args.scenario or str(EMBEDDED / "demo.toml")
     scn = _load(path, [*(args.set or []), "timing.duration_s=0.5"])
     tr = {k: v.tolist() for k, v in run(scn).trace.items()}  # Python floats, as the daemon sees them
-    core = ControlCore(scn.controller, scn.model, 1.0 / scn.timing.control_rate_hz, scn.timing.delay_samples)
+    T = 1.0 / scn.timing.control_rate_hz
     n = len(tr["t"])
     samples = [Sample(k, tr["t"][k], tr["i_meas"][k], tr["v_meas"][k], tr["u_meas"][k], tr["i_load_meas"][k])
                for k in range(n)]
-    incs = [Incoming(-tr["P_l"][k], 0.0) for k in range(n)]
-    times = [0.0] * n
+    incs = [Incoming(tr["P_r_in"][k], tr["P_r_in_dot"][k]) for k in range(n)]
+    impls = ["python"]
+    try:
+        make_core(scn.controller, scn.model, T, scn.timing.delay_samples, "c")
+        impls.insert(0, "c")
+    except ImportError:
+        pass
+    times: dict[str, list[int]] = {m: [] for m in impls}
     pc = time.perf_counter_ns
     gc.freeze()
     gc.disable()
     try:
-        for k in range(n):
-            t0 = pc()
-            core.step(samples[k], incs[k])
-            times[k] = pc() - t0
+        for _ in range(max(1, args.repeat)):
+            for m in impls:
+                core = make_core(scn.controller, scn.model, T, scn.timing.delay_samples, m)
+                step, tm = core.step, times[m]
+                for k in range(n):
+                    t0 = pc()
+                    step(samples[k], incs[k])
+                    tm.append(pc() - t0)
     finally:
         gc.enable()
         gc.unfreeze()
-    times.sort()
-    return {"bench": "core", "scenario": scn.name, "controller": scn.controller.kind,
-            "mapping": scn.controller.mapping, "delay_samples": scn.timing.delay_samples, "steps": n,
-            "mean_us": sum(times) / n / 1e3, "p50_us": times[n // 2] / 1e3,
-            "p99_us": times[int(n * 0.99)] / 1e3, "max_us": times[-1] / 1e3}
+    res: dict = {"bench": "core", "scenario": scn.name, "controller": scn.controller.kind,
+                 "mapping": scn.controller.mapping, "delay_samples": scn.timing.delay_samples, "steps": n,
+                 "passes": max(1, args.repeat)}
+    for m, tm in times.items():
+        tm.sort()
+        k = len(tm)
+        res[m] = {"mean_us": sum(tm) / k / 1e3, "p50_us": tm[k // 2] / 1e3, "p99_us": tm[int(k * 0.99)] / 1e3,
+                  "max_us": tm[-1] / 1e3}
+    if "c" in res:
+        res["python_over_c_p50"] = res["python"]["p50_us"] / res["c"]["p50_us"]
+    return res
 
 
 def _zenoh_from_args(args: argparse.Namespace):

@@ -180,8 +180,10 @@ def effective_gain(cfg: ControllerConfig, model: CircuitParams) -> float:
     return 0.0
 
 
-class ControlCore:
-    """Deterministic controller for one RLC source component. See the module docstring."""
+class CoreBase:
+    """What every implementation of the core shares: configuration, derived gains, the reference map."""
+
+    impl = "python"
 
     def __init__(self, cfg: ControllerConfig, model: CircuitParams, period_s: float,
                  loop_delay_samples: int = 0):
@@ -191,18 +193,8 @@ class ControlCore:
         dc = cfg.delay_compensation_samples
         self.d = dc if dc is not None else loop_delay_samples
         self.n_pred = max(1, math.ceil(self.T / _PRED_STEP_S - 1e-9))
-        self.estimator = EnergyEstimator(model.R_ohm, model.L_H, model.C_F, cfg.deriv_tau_s)
         self._R, self._L, self._C = model.R_ohm, model.L_H, model.C_F
-        self.out = Output()
         self._cache()
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget history (new run, plant restart)."""
-        self.pending: deque[float] = deque([0.0] * self.d, maxlen=max(self.d, 1))
-        self.r_prev = 0.0
-        self.estimator.reset()
-        self.steps = 0
 
     def set_gains(self, cfg: ControllerConfig) -> None:
         """Swap gains and limits between steps (the caller validated cfg)."""
@@ -220,9 +212,34 @@ class ControlCore:
         self._lim = (lim.u_min_V, lim.u_max_V, lim.du_dt_max_V_per_s, lim.i_floor_A)
         self._keC = 0.5 * c.K_E_per_s * self._C if c.regulation == "energy" else 0.0
 
+    def run_batch(self, rows, du_out) -> None:
+        """Step n rows (n x 9 floats: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped; stepped 0 = not given to
+        the core, answers 0.0) and write each du/dt into du_out (log replay; the compiled core does it in C)."""
+        for j, r in enumerate(rows.tolist()):
+            du_out[j] = self.step(Sample(int(r[0]), *r[1:6]), Incoming(r[6], r[7])).du_dt if r[8] else 0.0
+
     def y_ref_of(self, P_in: float, v: float) -> float:
         """This controller's reference map y_ref(P^{r,in}, v) (W)."""
         return y_reference(P_in, v, self.cfg.v_ref_V, self._keC)
+
+
+class ControlCore(CoreBase):
+    """Deterministic controller for one RLC source component, in Python: the reference implementation
+    (service/_kernel.c is its compiled twin; see make_core). See the module docstring."""
+
+    def __init__(self, cfg: ControllerConfig, model: CircuitParams, period_s: float,
+                 loop_delay_samples: int = 0):
+        super().__init__(cfg, model, period_s, loop_delay_samples)
+        self.estimator = EnergyEstimator(model.R_ohm, model.L_H, model.C_F, cfg.deriv_tau_s)
+        self.out = Output()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget history (new run, plant restart)."""
+        self.pending: deque[float] = deque([0.0] * self.d, maxlen=max(self.d, 1))
+        self.r_prev = 0.0
+        self.estimator.reset()
+        self.steps = 0
 
     def applied_rate(self) -> float:
         """du/dt acting on the plant now, as far as the controller knows (V/s)."""
@@ -333,3 +350,24 @@ class ControlCore:
             self.pending.append(r)
         self.steps += 1
         return out
+
+
+def make_core(cfg: ControllerConfig, model: CircuitParams, period_s: float, loop_delay_samples: int = 0,
+              impl: str | None = None) -> CoreBase:
+    """The core every driver uses. impl: "c" (the compiled twin, bit-identical), "python" (the reference), or
+    "auto" (default: "c" if it was built, else "python"). The environment variable ENERGYCTL_CORE sets the
+    default, so a whole run (daemon, sim, replay) can be switched without a config change."""
+    import os
+
+    impl = impl or os.environ.get("ENERGYCTL_CORE", "auto")
+    if impl not in ("auto", "c", "python"):
+        raise ValueError(f"core implementation {impl!r}: expected auto, c or python")
+    if impl != "python":
+        try:
+            from .fastcore import CompiledCore
+        except ImportError as e:
+            if impl == "c":
+                raise ImportError(f"the compiled core (service/_kernel.c) is not built: {e}") from e
+        else:
+            return CompiledCore(cfg, model, period_s, loop_delay_samples)
+    return ControlCore(cfg, model, period_s, loop_delay_samples)

@@ -31,7 +31,7 @@ from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, f
 
 from . import __version__
 from .bus import key, latest, open_session, publisher, queued
-from .core import ControlCore, core_metadata, effective_gain
+from .core import core_metadata, effective_gain, make_core
 from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from .types import Incoming, Sample
 
@@ -115,7 +115,7 @@ class Daemon:
     def __init__(self, cfg: ComponentConfig):
         self.cfg = cfg
         self.period_s = 1.0 / cfg.loop.rate_hz
-        self.core = ControlCore(cfg.controller, cfg.model, self.period_s, cfg.delay_samples)
+        self.core = make_core(cfg.controller, cfg.model, self.period_s, cfg.delay_samples)
         self.stats = LoopStats(cfg.loop.stats_window)
         self.state = "configured"
         self.log_error = ""  # the recorder could not even start

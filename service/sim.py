@@ -15,7 +15,7 @@ import numpy as np
 
 from schemas.scenario import Scenario
 
-from .core import ControlCore, effective_gain
+from .core import effective_gain, make_core
 from .feasibility import FeasibilityMonitor, Violation, incoming_range, tau_prime
 from .plant import RLCPlant, Sensor, load_current
 from .profiles import Profile
@@ -47,7 +47,8 @@ def substeps(period_s: float, plant_step_s: float) -> int:
     return max(1, math.ceil(period_s / plant_step_s - 1e-9))
 
 
-def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
+def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None) -> SimResult:
+    """Closed loop offline. impl: the core implementation (core.make_core; default: compiled if built)."""
     tm = scn.timing
     T = 1.0 / tm.control_rate_hz
     n_sub = substeps(T, tm.plant_step_s)
@@ -56,7 +57,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True) -> SimResult:
     dist = Profile(scn.disturbance, scn.base_dir) if scn.disturbance is not None else None
     plant = RLCPlant(scn.plant, load, dist)
     sensor = Sensor(scn.sensor, scn.seed)
-    core = ControlCore(scn.controller, scn.model, T, tm.delay_samples)
+    core = make_core(scn.controller, scn.model, T, tm.delay_samples, impl)
     delay: deque[float] = deque([0.0] * tm.delay_samples)
     loss = tm.command_loss
     loss_rng = np.random.default_rng([scn.seed, 0xC0DE])  # its own stream: sensor noise stays the same

@@ -175,3 +175,46 @@ def test_rotated_daemon_log_replays_across_its_parts_and_records_neighbours_and_
     for p in parts:
         chans |= set(info(p)["channels"])
     assert "energyctl/source/z_nb/load" in chans and "energyctl/source/loop" in chans
+
+
+def test_fast_log_reader_gives_the_general_readers_arrays(tmp_path):
+    """clients/_mcapscan.c (no Python object per message) and mcap + json read the same doubles, also from a
+    file cut off mid-chunk (a killed writer); a log not in the recorder's flat JSON falls back to the general
+    reader instead of failing."""
+    import numpy as np
+    import pytest
+
+    from clients import replay as rp
+
+    if rp._mcapscan is None:
+        pytest.skip("log scanner not built")
+    res = run(load_scenario(SCENARIOS / "paper-varying-load.toml", ["timing.duration_s=0.2"]))
+    log = tmp_path / "log.mcap"
+    write_sim_mcap(log, res)
+    data = log.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:int(len(data) * 0.6)])
+    for f in (log, cut):
+        fast, general = rp._read_fast(f), rp._read_general(f)
+        a, b = np.concatenate(fast.rows), np.concatenate(general.rows)
+        assert a.shape == b.shape and len(a) > 0 and fast.core == general.core
+        needed = np.zeros(b.shape, dtype=bool)  # the columns replay reads (the scanner skips the others)
+        needed[:, 0] = True
+        for c, ks in enumerate(rp.KEYS):
+            for k, name in enumerate(ks):
+                needed[b[:, 0] == c, 1 + k] = name in rp.NEEDED[c]
+        assert needed[:, 1:].sum() > 3 * len(b)  # (meas 6, z_in 4, cmd 2 per tick)
+        assert np.array_equal(a[needed], b[needed])
+    assert len(np.concatenate(rp._read_fast(cut).rows)) < len(np.concatenate(rp._read_fast(log).rows))
+
+    from service.recorder import McapFile
+
+    odd = tmp_path / "odd.mcap"  # same topics, keys in another order: not the recorder's template
+    f = McapFile(odd)
+    f.metadata("core", {"json": "{}"})
+    f.channel("x/meas", "energyctl.Measurement")
+    f.add("x/meas", 0.0, {"t": 0.0, "seq": 0, "i": 1.0, "v": 80.0, "u": 80.0, "i_load": 1.0})
+    f.close()
+    with pytest.raises(ValueError, match="not the expected flat JSON"):
+        rp._read_fast(odd)
+    assert np.concatenate(rp.read_log(odd).rows)[0, 1:7].tolist() == [0.0, 0.0, 1.0, 80.0, 80.0, 1.0]

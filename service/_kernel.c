@@ -1,0 +1,546 @@
+/* Compiled twin of service/core.py's ControlCore.step (and the estimator it calls).
+ *
+ * Same operations in the same order as the Python reference, IEEE double, no fused multiply-add
+ * (built with -ffp-contract=off), libm's exp and sqrt (the ones Python's math module calls): the
+ * results are bit-identical to the Python core, which tests/test_kernel.py checks for every
+ * controller kind, both mappings and delays 0..3. The Python module stays the specification; this
+ * file is only its fast path. No clocks, no I/O, no globals: all state lives in the Kernel object.
+ *
+ * Python's min(a, b) returns a unless b < a, max(a, b) returns a unless b > a (NaN handling
+ * included); PYMIN / PYMAX copy that. Where Python would raise ZeroDivisionError (a zero voltage
+ * inside the prediction), C gives inf or NaN, which the step's finiteness check turns into
+ * du/dt = 0: the safe answer.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#define PYMIN(a, b) ((b) < (a) ? (b) : (a))
+#define PYMAX(a, b) ((b) > (a) ? (b) : (a))
+
+enum { K_FIXED = 0, K_LQR = 1, K_BM = 2, K_FBLC = 3, K_SMC = 4 };
+
+/* Output buffer layout (doubles), shared with service/fastcore.py. */
+enum {
+    O_DU = 0, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1,
+    O_SEQ, O_T, O_STEPS, O_COUNT, O_HAS_EST,
+    O_EST = 17, /* 18 RLCEnergy fields, in its __slots__ order */
+    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42,
+    O_N = 43
+};
+enum { E_E = 0, E_ET, E_D, E_TAU, E_P, E_PDOT, E_PU, E_QDU, E_PL, E_QDL, E_PM, E_YZ, E_YZB, E_ETA, E_PRO, E_QRO,
+       E_PROP, E_QROP };
+
+typedef struct {
+    PyObject_HEAD
+    /* model and timing */
+    double R, L, C, T, tau;
+    int d, n_pred;
+    /* gains and limits (set_params) */
+    int kind, continuous, cancel_Et;
+    double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC;
+    /* estimator: EwLineFit over (i, v, i_2) and the z_out integrals */
+    int has_t;
+    double t_last, S0, S1, S2, Sy[3], Say[3], ref[3];
+    int has_last;
+    double last_t, last_P, last_Q;
+    /* issued commands not yet acting (oldest first from head), previous command */
+    double *pending;
+    int head;
+    double r_prev;
+    double o[O_N];
+    Py_ssize_t exports;
+} Kernel;
+
+static void predict(double *pi, double *pv, double *pu, double P, double r, double T, int n, double R, double L,
+                    double C)
+{
+    double i = *pi, v = *pv, u = *pu;
+    double h = T / n, hh = 0.5 * h;
+    for (int k = 0; k < n; k++) {
+        double k1i = (u - R * i - v) / L;
+        double k1v = (i - P / v) / C;
+        double ii = i + hh * k1i, vv = v + hh * k1v;
+        double um = u + hh * r;
+        double k2i = (um - R * ii - vv) / L;
+        double k2v = (ii - P / vv) / C;
+        ii = i + hh * k2i;
+        vv = v + hh * k2v;
+        double k3i = (um - R * ii - vv) / L;
+        double k3v = (ii - P / vv) / C;
+        ii = i + h * k3i;
+        vv = v + h * k3v;
+        double u1 = u + h * r;
+        double k4i = (u1 - R * ii - vv) / L;
+        double k4v = (ii - P / vv) / C;
+        i = i + h / 6.0 * (k1i + 2.0 * k2i + 2.0 * k3i + k4i);
+        v = v + h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v);
+        u = u1;
+    }
+    *pi = i; *pv = v; *pu = u;
+}
+
+static void predict_with_sensitivity(double i, double v, double u, double P, double r, double T, int n, double R,
+                                     double L, double C, double *pi, double *pv, double *pu, double *psi)
+{
+    double h = T / n, hh = 0.5 * h;
+    double si = 0.0, sv = 0.0, tau = 0.0;
+    for (int k = 0; k < n; k++) {
+        double k1i = (u - R * i - v) / L;
+        double k1v = (i - P / v) / C;
+        double g = P / (v * v);
+        double k1si = (tau - R * si - sv) / L;
+        double k1sv = (si + g * sv) / C;
+        double ii = i + hh * k1i, vv = v + hh * k1v;
+        double s2i = si + hh * k1si, s2v = sv + hh * k1sv;
+        double um = u + hh * r;
+        g = P / (vv * vv);
+        double k2i = (um - R * ii - vv) / L;
+        double k2v = (ii - P / vv) / C;
+        double k2si = (tau + hh - R * s2i - s2v) / L;
+        double k2sv = (s2i + g * s2v) / C;
+        ii = i + hh * k2i;
+        vv = v + hh * k2v;
+        double s3i = si + hh * k2si, s3v = sv + hh * k2sv;
+        g = P / (vv * vv);
+        double k3i = (um - R * ii - vv) / L;
+        double k3v = (ii - P / vv) / C;
+        double k3si = (tau + hh - R * s3i - s3v) / L;
+        double k3sv = (s3i + g * s3v) / C;
+        ii = i + h * k3i;
+        vv = v + h * k3v;
+        double s4i = si + h * k3si, s4v = sv + h * k3sv;
+        double u1 = u + h * r;
+        g = P / (vv * vv);
+        double k4i = (u1 - R * ii - vv) / L;
+        double k4v = (ii - P / vv) / C;
+        double k4si = (tau + h - R * s4i - s4v) / L;
+        double k4sv = (s4i + g * s4v) / C;
+        i = i + h / 6.0 * (k1i + 2.0 * k2i + 2.0 * k3i + k4i);
+        v = v + h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v);
+        si = si + h / 6.0 * (k1si + 2.0 * k2si + 2.0 * k3si + k4si);
+        sv = sv + h / 6.0 * (k1sv + 2.0 * k2sv + 2.0 * k3sv + k4sv);
+        u = u1;
+        tau = tau + h;
+    }
+    *pi = i; *pv = v; *pu = u; *psi = si;
+}
+
+static double solve_rate_for_target(double R, double T, double i1, double u1, double si, double y_target)
+{
+    double a = R * si * si - T * si;
+    double b = 2.0 * R * i1 * si - u1 * si - T * i1;
+    double c = R * i1 * i1 - u1 * i1 - y_target;
+    if (fabs(a) * fabs(c) < 1e-12 * b * b)
+        return b != 0.0 ? -c / b : 0.0;
+    double disc = b * b - 4.0 * a * c;
+    if (disc < 0.0)
+        return -b / (2.0 * a);
+    double q = -0.5 * (b + copysign(sqrt(disc), b));
+    return q != 0.0 ? c / q : 0.0;
+}
+
+static double y_reference(double P_in, double v, double v_ref, double keC)
+{
+    if (keC == 0.0)
+        return P_in * v_ref / v;
+    return P_in + keC * (v * v - v_ref * v_ref);
+}
+
+static void kernel_reset(Kernel *k)
+{
+    k->has_t = 0;
+    k->t_last = k->S0 = k->S1 = k->S2 = 0.0;
+    for (int c = 0; c < 3; c++) {
+        k->Sy[c] = k->Say[c] = k->ref[c] = 0.0;
+        k->o[O_FITV + c] = k->o[O_FITS + c] = 0.0;
+    }
+    k->o[O_COUNT] = 0.0;
+    k->o[O_ZRUN0] = k->o[O_ZRUN1] = 0.0;
+    k->has_last = 0;
+    for (int j = 0; j < k->d; j++)
+        k->pending[j] = 0.0;
+    k->head = 0;
+    k->r_prev = 0.0;
+    k->o[O_STEPS] = 0.0;
+}
+
+/* EwLineFit.update3 (and its first-sample path in update); returns 0 if t did not advance. */
+static int fit_update(Kernel *k, double t, const double y[3])
+{
+    double *val = k->o + O_FITV, *slo = k->o + O_FITS;
+    if (!k->has_t) {
+        k->has_t = 1;
+        k->t_last = t;
+        k->S0 = 1.0;
+        for (int c = 0; c < 3; c++) {
+            k->ref[c] = y[c];
+            k->Sy[c] = k->Say[c] = 0.0;
+            val[c] = y[c];
+            slo[c] = 0.0;
+        }
+        k->o[O_COUNT] = 1.0;
+        return 1;
+    }
+    double dt = t - k->t_last;
+    if (!(dt > 0.0))
+        return 0;
+    k->t_last = t;
+    double w = exp(-dt / k->tau);
+    double S0 = k->S0, S1 = k->S1;
+    double S2 = (k->S2 + 2.0 * dt * S1 + dt * dt * S0) * w;
+    S1 = (S1 + dt * S0) * w;
+    S0 = S0 * w + 1.0;
+    k->S0 = S0; k->S1 = S1; k->S2 = S2;
+    double det = S0 * S2 - S1 * S1;
+    double sy[3], sa[3];
+    for (int c = 0; c < 3; c++) {
+        sy[c] = k->Sy[c] * w + (y[c] - k->ref[c]);
+        sa[c] = (k->Say[c] + dt * k->Sy[c]) * w;
+    }
+    for (int c = 0; c < 3; c++) {
+        k->Sy[c] = sy[c];
+        k->Say[c] = sa[c];
+    }
+    if (det > 1e-12 * S0 * S0 * (k->tau * k->tau)) {
+        for (int c = 0; c < 3; c++) {
+            double b = (S0 * sa[c] - S1 * sy[c]) / det;
+            val[c] = k->ref[c] + (sy[c] - b * S1) / S0;
+            slo[c] = -b;
+        }
+    } else {
+        for (int c = 0; c < 3; c++) {
+            val[c] = y[c];
+            slo[c] = 0.0;
+        }
+    }
+    k->o[O_COUNT] += 1.0;
+    return 1;
+}
+
+/* RLCEnergy.update with u_m = 0 (service/energy.py). */
+static void energy_update(double *e, double R, double L, double C, double i, double v, double u, double i2,
+                          double di, double dv, double du, double di2)
+{
+    const double u_m = 0.0;
+    double E = 0.5 * (L * i * i + C * v * v);
+    double E_t = 0.5 * (L * di * di + C * dv * dv);
+    double D = R * i * i;
+    double p = L * i * di + C * v * dv;
+    double ddi = (du - R * di - dv) / L;
+    double ddv = (di - di2) / C;
+    double pdot = L * di * di + C * dv * dv + L * i * ddi + C * v * ddv;
+    double P_u = u * i, Qdot_u = u * di - i * du, P_m = u_m * i, Qdot_m = u_m * di;
+    e[E_E] = E; e[E_ET] = E_t; e[E_D] = D; e[E_P] = p; e[E_PDOT] = pdot;
+    e[E_TAU] = D > 0.0 ? E / D : INFINITY;
+    e[E_PU] = P_u; e[E_QDU] = Qdot_u; e[E_PM] = P_m;
+    e[E_PL] = v * i2;
+    e[E_QDL] = v * di2 - i2 * dv;
+    e[E_YZ] = D - P_u - P_m;
+    e[E_YZB] = -(e[E_PL] + p);
+    e[E_ETA] = 4.0 * E_t + 2.0 * (R * i - u - u_m) * di;
+    e[E_PRO] = p + D - P_u - P_m;
+    e[E_QRO] = -pdot + 4.0 * E_t - Qdot_u - Qdot_m;
+    e[E_PROP] = -e[E_PL];
+    e[E_QROP] = e[E_QDL] + 2.0 * (i * dv - v * di);
+}
+
+/* ControlCore.step; returns 1 if the estimator took the sample. */
+static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double su, double si2, double P_in,
+                       double P_in_dot)
+{
+    const double R = k->R, L = k->L, C = k->C, T = k->T;
+    const double u_min = k->u_min, u_max = k->u_max, r_max = k->r_max, i_floor = k->i_floor;
+    const double v_ref = k->v_ref, K = k->K, alpha = k->alpha, phi = k->phi, decay = k->decay, keC = k->keC;
+    const int d = k->d;
+    double *o = k->o;
+    double applied = d > 0 ? k->pending[k->head] : k->r_prev;
+
+    /* estimator */
+    double y[3] = {si_, sv, si2};
+    int took = fit_update(k, t, y);
+    if (took) {
+        double *fv = o + O_FITV, *fs = o + O_FITS, *e = o + O_EST;
+        energy_update(e, R, L, C, fv[0], fv[1], su, fv[2], fs[0], fs[1], applied, fs[2]);
+        if (k->has_last) {
+            double h = t - k->last_t;
+            o[O_ZRUN0] += 0.5 * h * (k->last_P + e[E_PROP]);
+            o[O_ZRUN1] += 0.5 * h * (k->last_Q + e[E_QROP]);
+        }
+        k->has_last = 1;
+        k->last_t = t;
+        k->last_P = e[E_PROP];
+        k->last_Q = e[E_QROP];
+        o[O_HAS_EST] = 1.0;
+        o[O_Z0] = o[O_ZRUN0];
+        o[O_Z1] = o[O_ZRUN1];
+    }
+
+    /* state at the start of the period this command will act on */
+    double P_meas = sv * si2;
+    double Pdot = -P_in_dot;
+    double i_p = si_, v_p = sv, u_p = su;
+    for (int j = 0; j < d; j++) {
+        double r_j = k->pending[(k->head + j) % d];
+        predict(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C);
+        if (u_p > u_max)
+            u_p = u_max;
+        else if (u_p < u_min)
+            u_p = u_min;
+    }
+    double P_app = P_meas + Pdot * ((double)d + 0.5) * T;
+    o[O_IPRED] = i_p; o[O_VPRED] = v_p; o[O_UPRED] = u_p;
+
+    double y_z = R * si_ * si_ - su * si_;
+    double y_ref = y_reference(P_in, sv, v_ref, keC);
+    o[O_YZ] = y_z; o[O_YREF] = y_ref; o[O_E] = y_z - y_ref;
+    double P_in_app = P_in + P_in_dot * (double)d * T;
+    double u_z = 0.0, r;
+
+    if (k->kind == K_FIXED) {
+        r = 0.0;
+    } else if (k->kind == K_LQR) {
+        double P_l = -P_in;
+        double i_ref = P_l / v_ref;
+        double u_ref = v_ref + R * P_l / v_ref;
+        double u_des = u_ref - k->lK1 * (i_p - i_ref) - k->lK2 * (v_p - v_ref);
+        r = (u_des - u_p) / T;
+    } else if (k->kind == K_BM) {
+        double dv = (i_p - P_app / v_p) / C;
+        double u_des = R * i_p + v_ref - L * (k->bPi / (v_p * v_p) + k->bK3) * dv - k->bK1 * (v_p - v_ref)
+                       - k->bK2 * dv;
+        r = (u_des - u_p) / T;
+    } else {
+        double y_p = R * i_p * i_p - u_p * i_p;
+        double e_p = y_p - y_reference(P_in_app, v_p, v_ref, keC);
+        double di = (u_p - R * i_p - v_p) / L;
+        if (k->continuous) {
+            double dv = (i_p - P_app / v_p) / C;
+            double dy_ref;
+            if (keC == 0.0)
+                dy_ref = P_in_dot * v_ref / v_p - P_in_app * v_ref * dv / (v_p * v_p);
+            else
+                dy_ref = P_in_dot + 2.0 * keC * v_p * dv;
+            if (k->kind == K_FBLC) {
+                u_z = -K * e_p + dy_ref - 2.0 * (R * i_p - u_p) * di;
+                if (!k->cancel_Et)
+                    u_z = u_z - 2.0 * (L * di * di + C * dv * dv);
+            } else {
+                double sat;
+                if (phi > 0.0)
+                    sat = PYMAX(-1.0, PYMIN(1.0, e_p / phi));
+                else
+                    sat = e_p > 0 ? 1.0 : (e_p < 0 ? -1.0 : 0.0);
+                u_z = -alpha * sat + dy_ref;
+            }
+            double i_f = i_p >= 0.0 ? PYMAX(i_p, i_floor) : PYMIN(i_p, -i_floor);
+            r = (u_p * di - u_z) / i_f;
+        } else {
+            double r_lo = PYMAX(-r_max, (u_min - u_p) / T);
+            double r_hi = PYMAX(r_lo, PYMIN(r_max, (u_max - u_p) / T));
+            double r0 = PYMIN(PYMAX(k->r_prev, r_lo), r_hi);
+            double i1, v1, u1, sens;
+            predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, k->n_pred, R, L, C, &i1, &v1, &u1, &sens);
+            double e1;
+            if (k->kind == K_FBLC) {
+                e1 = e_p * decay;
+                if (!k->cancel_Et) {
+                    double dv = (i_p - P_app / v_p) / C;
+                    e1 = e1 - 2.0 * (L * di * di + C * dv * dv) * T;
+                }
+            } else {
+                double sat = phi > 0.0 ? PYMAX(-1.0, PYMIN(1.0, e_p / phi)) : copysign(1.0, e_p);
+                double stepv = alpha * T * sat;
+                e1 = fabs(stepv) >= fabs(e_p) ? 0.0 : e_p - stepv;
+            }
+            double y_target = y_reference(P_in + P_in_dot * (double)(d + 1) * T, v1, v_ref, keC) + e1;
+            r = r0 + solve_rate_for_target(R, T, i1, u1, sens, y_target);
+            u_z = u_p * di - i_p * r;
+        }
+    }
+
+    double raw = r;
+    if (!isfinite(r))
+        r = 0.0;
+    r = PYMIN(PYMAX(r, (u_min - u_p) / T), (u_max - u_p) / T);
+    r = PYMIN(PYMAX(r, -r_max), r_max);
+    o[O_LIMITED] = (r != raw) ? 1.0 : 0.0;
+    o[O_DU_RAW] = raw;
+    o[O_DU] = r;
+    o[O_UZ] = u_z;
+    o[O_SEQ] = seq;
+    o[O_T] = t;
+    k->r_prev = r;
+    if (d > 0) {
+        k->pending[k->head] = r;
+        k->head = (k->head + 1) % d;
+    }
+    o[O_STEPS] += 1.0;
+    return took;
+}
+
+/* ------------------------------------------------------------------ Python type */
+
+static int Kernel_init(Kernel *self, PyObject *args, PyObject *kw)
+{
+    (void)kw;
+    double R, L, C, T, tau;
+    int d, n_pred;
+    if (!PyArg_ParseTuple(args, "dddddii", &R, &L, &C, &T, &tau, &d, &n_pred))
+        return -1;
+    if (d < 0 || n_pred < 1 || !(T > 0.0) || !(tau > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "Kernel: need d >= 0, n_pred >= 1, T > 0, tau > 0");
+        return -1;
+    }
+    PyMem_Free(self->pending);
+    self->pending = PyMem_Calloc(d > 0 ? (size_t)d : 1, sizeof(double));
+    if (self->pending == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    self->R = R; self->L = L; self->C = C; self->T = T; self->tau = tau;
+    self->d = d; self->n_pred = n_pred;
+    memset(self->o, 0, sizeof(self->o));
+    kernel_reset(self);
+    return 0;
+}
+
+static void Kernel_dealloc(Kernel *self)
+{
+    PyMem_Free(self->pending);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyObject *Kernel_set_params(Kernel *self, PyObject *args)
+{
+    if (!PyArg_ParseTuple(args, "iii(ddddd)(dd)(dddd)(dddd)d", &self->kind, &self->continuous, &self->cancel_Et,
+                          &self->v_ref, &self->K, &self->alpha, &self->phi, &self->decay, &self->lK1, &self->lK2,
+                          &self->bK1, &self->bK2, &self->bK3, &self->bPi, &self->u_min, &self->u_max, &self->r_max,
+                          &self->i_floor, &self->keC))
+        return NULL;
+    Py_RETURN_NONE;
+}
+
+static PyObject *Kernel_reset(Kernel *self, PyObject *Py_UNUSED(ignored))
+{
+    kernel_reset(self);
+    Py_RETURN_NONE;
+}
+
+/* step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot) -> bool (estimator took the sample) */
+static PyObject *Kernel_step(Kernel *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double x[8];
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError, "step() takes 8 arguments: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot");
+        return NULL;
+    }
+    for (int j = 0; j < 8; j++) {
+        x[j] = PyFloat_AsDouble(args[j]);
+        if (x[j] == -1.0 && PyErr_Occurred())
+            return NULL;
+    }
+    int took = kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
+    return PyBool_FromLong(took);
+}
+
+/* run(inputs, du_out, resets): a whole replay segment without returning to Python. inputs holds n rows of
+ * 9 doubles (seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped); a row with stepped == 0 is not given to the
+ * core and answers 0.0 (the daemon held). du_out receives n doubles. Returns None. */
+static PyObject *Kernel_run(Kernel *self, PyObject *args)
+{
+    Py_buffer in, out;
+    if (!PyArg_ParseTuple(args, "y*w*", &in, &out))
+        return NULL;
+    PyObject *res = NULL;
+    Py_ssize_t n = in.len / (Py_ssize_t)(9 * sizeof(double));
+    if (in.len != n * (Py_ssize_t)(9 * sizeof(double)) || out.len != n * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "run(): inputs must be n x 9 doubles and du_out n doubles");
+        goto done;
+    }
+    const double *x = (const double *)in.buf;
+    double *du = (double *)out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = 0; j < n; j++, x += 9) {
+        if (x[8] != 0.0) {
+            kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
+            du[j] = self->o[O_DU];
+        } else {
+            du[j] = 0.0;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    res = Py_None;
+    Py_INCREF(res);
+done:
+    PyBuffer_Release(&in);
+    PyBuffer_Release(&out);
+    return res;
+}
+
+static PyObject *Kernel_applied_rate(Kernel *self, PyObject *Py_UNUSED(ignored))
+{
+    return PyFloat_FromDouble(self->d > 0 ? self->pending[self->head] : self->r_prev);
+}
+
+static int Kernel_getbuffer(Kernel *self, Py_buffer *view, int flags)
+{
+    int rc = PyBuffer_FillInfo(view, (PyObject *)self, self->o, sizeof(self->o), 1, flags);
+    if (rc == 0)
+        self->exports++;
+    return rc;
+}
+
+static void Kernel_releasebuffer(Kernel *self, Py_buffer *view)
+{
+    (void)view;
+    self->exports--;
+}
+
+static PyBufferProcs Kernel_as_buffer = {(getbufferproc)Kernel_getbuffer, (releasebufferproc)Kernel_releasebuffer};
+
+static PyMethodDef Kernel_methods[] = {
+    {"set_params", (PyCFunction)Kernel_set_params, METH_VARARGS, "set gains and limits (see fastcore.py)"},
+    {"reset", (PyCFunction)Kernel_reset, METH_NOARGS, "forget history"},
+    {"step", (PyCFunction)(void (*)(void))Kernel_step, METH_FASTCALL, "one control step"},
+    {"run", (PyCFunction)Kernel_run, METH_VARARGS, "many steps (replay)"},
+    {"applied_rate", (PyCFunction)Kernel_applied_rate, METH_NOARGS, "du/dt acting now"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject KernelType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "service._kernel.Kernel",
+    .tp_basicsize = sizeof(Kernel),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Compiled ControlCore step; outputs in a read-only buffer of doubles (layout in fastcore.py).",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Kernel_init,
+    .tp_dealloc = (destructor)Kernel_dealloc,
+    .tp_methods = Kernel_methods,
+    .tp_as_buffer = &Kernel_as_buffer,
+};
+
+static struct PyModuleDef kernel_module = {PyModuleDef_HEAD_INIT, "service._kernel",
+                                           "Compiled twin of the control core's step.", -1, NULL};
+
+PyMODINIT_FUNC PyInit__kernel(void)
+{
+    if (PyType_Ready(&KernelType) < 0)
+        return NULL;
+    PyObject *m = PyModule_Create(&kernel_module);
+    if (m == NULL)
+        return NULL;
+    Py_INCREF(&KernelType);
+    if (PyModule_AddObject(m, "Kernel", (PyObject *)&KernelType) < 0) {
+        Py_DECREF(&KernelType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (PyModule_AddIntConstant(m, "OUT_LEN", O_N) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}
