@@ -19,7 +19,7 @@ import json
 import os
 import socket
 import time
-from queue import SimpleQueue
+from queue import Queue
 
 import zenoh
 
@@ -96,8 +96,13 @@ def queued(session: zenoh.Session, key_expr: str):
     """(subscriber, queue): each message is put as (arrival monotonic ns, payload bytes) by a callback.
 
     For event-driven loops: ``queue.get(timeout=...)`` sleeps without the GIL and wakes on arrival
-    (unlike a blocked ``recv()``, it can time out, so the loop can always be stopped)."""
-    q: SimpleQueue = SimpleQueue()
+    (unlike a blocked ``recv()``, it can time out, so the loop can always be stopped).
+
+    queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout=...) can block forever when its
+    deadline passes between a wake-up and the re-wait (the remaining time goes negative, which its lock
+    call takes as "no timeout"). Seen here: a realtime plant waiting 44 us hung for minutes in
+    futex(..., NULL). Queue.get checks the remaining time itself."""
+    q: Queue = Queue()
     put, now = q.put, time.monotonic_ns
 
     def on_sample(sample) -> None:
