@@ -438,6 +438,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0 if (res["identical"] or args.out) else 1
 
 
+def describe_loop_delay(ld: dict) -> str:
+    """One line for a measured loop delay (service/delay.py), from status or a log."""
+    d, comp = ld.get("measured_samples"), ld.get("compensated_samples")
+    if d is None:
+        return f"not measurable from {ld.get('window', 0)} ticks (commands too steady); compensating {comp}"
+    flag = "  MISMATCH: set delay_samples to the measured value" if ld.get("mismatch") else ""
+    return (f"measured {d} samples over {ld['window']} ticks (explains {ld['explained']:.0%} of the measured "
+            f"du/dt, contrast {ld['contrast']:.2f}); compensating {comp}{flag}")
+
+
 def cmd_log(args: argparse.Namespace) -> int:
     from .logtools import info, recover
 
@@ -455,6 +465,8 @@ def cmd_log(args: argparse.Namespace) -> int:
                 for name in ("config", "scenario", "core", "build"):
                     if name in res:
                         print(f"{name}: {json.dumps(res[name])[:400]}")
+                if "loop_delay" in res:
+                    print(f"loop delay: {describe_loop_delay(res['loop_delay'])}")
         else:
             if not args.fixed:
                 raise ScenarioError("log recover: give BROKEN.mcap FIXED.mcap")

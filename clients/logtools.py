@@ -64,7 +64,30 @@ def info(path: str | Path) -> dict:
         if name in s["metadata"]:
             m = s["metadata"][name]
             out[name] = json.loads(m["json"]) if "json" in m else m
+    if isinstance(out.get("core"), dict) and "period_s" in out["core"]:  # a daemon or sim log
+        out["loop_delay"] = measured_loop_delay(path, out["core"])
     return out
+
+
+def measured_loop_delay(path: str | Path, core: dict) -> dict:
+    """The loop delay measured from the log's last plant epoch (service/delay.py)."""
+    import numpy as np
+
+    from clients.replay import ReplayError, collect
+    from service.delay import estimate_loop_delay, on_seq_grid
+
+    try:
+        tk = collect([path])
+    except ReplayError:
+        return {"measured_samples": None}
+    last = tk.keys >> 40 == tk.restarts  # the last plant epoch only (seq restarts from 0 at a restart)
+    sent = np.where(tk.has_cmd[last], tk.logged[last], 0.0)
+    u, r = on_seq_grid(tk.rows[last, 0], tk.rows[last, 4], sent)
+    est = estimate_loop_delay(u, r, core["period_s"])
+    d = est["samples"]
+    comp = core.get("delay_samples")
+    return {"measured_samples": d, "compensated_samples": comp, "mismatch": d is not None and d != comp,
+            "window": int(last.sum()), "explained": est["explained"], "contrast": est["contrast"]}
 
 
 def recover(broken: str | Path, fixed: str | Path) -> dict:

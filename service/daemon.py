@@ -22,6 +22,7 @@ import threading
 import time
 from array import array
 
+import numpy as np
 import zenoh
 from pydantic import ValidationError
 
@@ -32,10 +33,12 @@ from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, f
 from . import __version__
 from .bus import key, latest, open_session, publisher, queued
 from .core import core_metadata, effective_gain, make_core
+from .delay import estimate_loop_delay, on_seq_grid
 from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from .types import Incoming, Sample
 
 STATES = ("configured", "active", "inactive", "shutdown")
+HIST = 2048  # ticks of command history for the measured loop delay (a power of two)
 
 
 class LoopStats:
@@ -141,6 +144,11 @@ class Daemon:
         self._own_range = [math.inf, -math.inf, math.inf, -math.inf]
         self._window = -1
         self.session: zenoh.Session | None = None
+        # (seq, measured u, du/dt sent) of the last HIST ticks, for the measured loop delay (service/delay.py):
+        # the loop stores, the status query estimates
+        self._hist_seq = array("q", [-1] * HIST)
+        self._hist_u = array("d", [0.0] * HIST)
+        self._hist_r = array("d", [0.0] * HIST)
 
     # ---------------------------------------------------------------- setup / teardown
     def open(self) -> None:
@@ -410,6 +418,11 @@ class Daemon:
         self._reject(reason, detail)
         self.cmd_pub.put(CMD.encode(v[0], v[1], 0.0, True))
         self.last_cmd = (v[0], v[1], 0.0, True)
+        self._remember(v[0], v[4], 0.0)
+
+    def _remember(self, seq: int, u: float, du: float) -> None:
+        j = seq & (HIST - 1)
+        self._hist_seq[j], self._hist_u[j], self._hist_r[j] = seq, u, du
 
     def _tick(self, payload: bytes, now: int) -> None:
         self._poll_neighbours(now)
@@ -470,6 +483,7 @@ class Daemon:
             du, limited = 0.0, False  # inactive, or no fresh reference: hold the source voltage
         self.cmd_pub.put(CMD.encode(seq, v[1], du, limited))
         self.last_cmd = (seq, v[1], du, limited)
+        self._remember(seq, v[4], du)
         rec = self.recorder
         if rec is not None:  # tuples only: encoding and I/O happen on the recorder thread
             t = v[1]
@@ -569,8 +583,27 @@ class Daemon:
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
+            "loop_delay": self._loop_delay(),
             "logging": self._logging_status(),
         }
+
+    def _loop_delay(self) -> dict:
+        """The loop delay measured from the newest run of consecutive ticks (service/delay.py), against the
+        delay the core compensates; read while the loop writes, so a sample at the edge may be torn (a
+        diagnostic, not a control input)."""
+        last = self._last_seq
+        out = {"measured_samples": None, "compensated_samples": self.core.d, "mismatch": False, "window": 0}
+        if last < 0:
+            return out
+        seqs = np.arange(max(0, last - HIST + 1), last + 1)  # this plant epoch's newest ticks, oldest first
+        idx = seqs & (HIST - 1)
+        have = np.frombuffer(self._hist_seq, dtype=np.int64)[idx] == seqs
+        u, r = on_seq_grid(seqs[have], np.frombuffer(self._hist_u)[idx][have], np.frombuffer(self._hist_r)[idx][have])
+        est = estimate_loop_delay(u, r, self.period_s)
+        d = est["samples"]
+        out.update(measured_samples=d, mismatch=d is not None and d != self.core.d, window=int(have.sum()),
+                   explained=est["explained"], contrast=est["contrast"])
+        return out
 
     def _logging_status(self) -> dict | None:
         rec = self.recorder

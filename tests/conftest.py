@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.scenario import scenario_from_dict
+from schemas.scenario import load_scenario, scenario_from_dict
 from service.energy import RLCEnergy
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -51,3 +51,25 @@ def exact_energy_along(trace: dict, R: float, L: float, C: float, Pdot: np.ndarr
 @pytest.fixture
 def paper_files():
     return sorted(SCENARIOS.glob("paper-*.toml"))
+
+
+@pytest.fixture
+def daemon_by_hand():
+    """An opened daemon (loopback session, no peers) whose loop we drive by hand through _tick."""
+    from clients.live import configs_from_scenario
+    from schemas.component import ComponentConfig, config_from_dict
+    from service.bus import free_tcp_port
+    from service.daemon import Daemon
+
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
+    comp["neighbour_stale_s"] = 10.0
+    comp["loop"]["trigger"] = "clock"
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    nb = d.neighbours[0]
+    nb.count, nb.P, nb.rx_ns = 1, 1200.0, 0
+    try:
+        yield d
+    finally:
+        d.close()

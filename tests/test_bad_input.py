@@ -18,20 +18,8 @@ from service.daemon import Daemon
 
 
 @pytest.fixture
-def daemon():
-    """An opened daemon (loopback session, no peers) whose loop we drive by hand through _tick."""
-    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
-    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
-    comp["neighbour_stale_s"] = 10.0
-    comp["loop"]["trigger"] = "clock"
-    d = Daemon(config_from_dict(ComponentConfig, comp))
-    d.open()
-    nb = d.neighbours[0]
-    nb.count, nb.P, nb.rx_ns = 1, 1200.0, 0
-    try:
-        yield d
-    finally:
-        d.close()
+def daemon(daemon_by_hand):
+    return daemon_by_hand
 
 
 def meas(k, t=None, i=15.0, v=80.0, u=80.15, i_load=15.0):

@@ -45,6 +45,9 @@ def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
 
     r = replay(res["daemon_log"], progress=False)
     assert r["identical"] and r["compared"] == 500
+    # the daemon measured the plant's delay line from u and its own commands, and compensates exactly that
+    ld = res["daemon"]["loop_delay"]
+    assert ld["measured_samples"] == scn.timing.delay_samples == 3 and not ld["mismatch"]
 
 
 @pytest.fixture
