@@ -41,6 +41,30 @@ static uint32_t rd32(const unsigned char *p)
     return v;
 }
 
+/* The record at p: its opcode, content and content length; returns where the next record starts, or NULL at
+ * the end or at a record cut off (a killed writer: everything before it is still read). */
+static const unsigned char *record(const unsigned char *p, const unsigned char *end, int *op,
+                                   const unsigned char **content, uint64_t *len)
+{
+    if (end - p < 9)
+        return NULL;
+    uint64_t l = rd64(p + 1);
+    if (l > (uint64_t)(end - p - 9))
+        return NULL;
+    *op = p[0];
+    *content = p + 9;
+    *len = l;
+    return p + 9 + l;
+}
+
+/* Append a new reference to a list; on failure clear the list (the caller returns NULL). */
+static void append_new(PyObject **list, PyObject *item)
+{
+    if (item == NULL || PyList_Append(*list, item) < 0)
+        Py_CLEAR(*list);
+    Py_XDECREF(item);
+}
+
 /* channels(records) -> [(channel_id, topic bytes), ...] for every Channel record in the sequence */
 static PyObject *mcap_channels(PyObject *self, PyObject *args)
 {
@@ -49,21 +73,12 @@ static PyObject *mcap_channels(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "y*", &b))
         return NULL;
     PyObject *out = PyList_New(0);
-    const unsigned char *p = b.buf, *end = p + b.len;
-    while (out != NULL && end - p >= 9) {
-        uint64_t len = rd64(p + 1);
-        if (len > (uint64_t)(end - p - 9))
-            break; /* cut off: stop at the last complete record */
-        if (p[0] == 0x04 && len >= 8) {
-            uint32_t tl = rd32(p + 13);
-            if (tl <= len - 8) {
-                PyObject *t = Py_BuildValue("(iy#)", (int)rd16(p + 9), (const char *)p + 17, (Py_ssize_t)tl);
-                if (t == NULL || PyList_Append(out, t) < 0)
-                    Py_CLEAR(out);
-                Py_XDECREF(t);
-            }
-        }
-        p += 9 + len;
+    const unsigned char *end = (const unsigned char *)b.buf + b.len, *c, *nx;
+    int op;
+    uint64_t len;
+    for (const unsigned char *p = b.buf; out != NULL && (nx = record(p, end, &op, &c, &len)) != NULL; p = nx) {
+        if (op == 0x04 && len >= 8 && rd32(c + 4) <= len - 8)
+            append_new(&out, Py_BuildValue("(iy#)", (int)rd16(c), (const char *)c + 8, (Py_ssize_t)rd32(c + 4)));
     }
     PyBuffer_Release(&b);
     return out;
@@ -157,44 +172,34 @@ static PyObject *mcap_scan(PyObject *self, PyObject *args)
             }
     }
     const unsigned char *tab = tb.buf;
-    const unsigned char *p0 = b.buf, *end = p0 + b.len, *p;
+    const unsigned char *p0 = b.buf, *end = p0 + b.len, *c, *nx;
+    int op;
+    uint64_t len;
     Py_ssize_t count = 0;
-    for (p = p0; end - p >= 9;) { /* pass 1: how many rows */
-        uint64_t len = rd64(p + 1);
-        if (len > (uint64_t)(end - p - 9))
-            break;
-        if (p[0] == 0x05 && len >= 22 && tab[rd16(p + 9)] != 255)
-            count++;
-        p += 9 + len;
-    }
+    for (const unsigned char *p = p0; (nx = record(p, end, &op, &c, &len)) != NULL; p = nx) /* how many rows */
+        count += op == 0x05 && len >= 22 && tab[rd16(c)] != 255;
     res = PyBytes_FromStringAndSize(NULL, count * (Py_ssize_t)((1 + MAXF) * sizeof(double)));
     if (res == NULL)
         goto done;
     double *row = (double *)PyBytes_AS_STRING(res);
-    for (p = p0; end - p >= 9;) { /* pass 2: parse */
-        uint64_t len = rd64(p + 1);
-        if (len > (uint64_t)(end - p - 9))
-            break;
-        if (p[0] == 0x05 && len >= 22) {
-            int code = tab[rd16(p + 9)];
-            if (code != 255) {
-                if (code >= PyTuple_GET_SIZE(keys)) {
-                    PyErr_SetString(PyExc_ValueError, "scan(): a code has no keys");
-                    Py_CLEAR(res);
-                    goto done;
-                }
-                memset(row, 0, (1 + MAXF) * sizeof(double));
-                row[0] = code;
-                if (parse_row(p + 9 + 22, (Py_ssize_t)len - 22, PyTuple_GET_ITEM(keys, code), row + 1) != 0) {
-                    PyErr_Format(PyExc_ValueError, "scan(): a message on channel %d is not the expected flat JSON",
-                                 (int)rd16(p + 9));
-                    Py_CLEAR(res);
-                    goto done;
-                }
-                row += 1 + MAXF;
-            }
+    for (const unsigned char *p = p0; (nx = record(p, end, &op, &c, &len)) != NULL; p = nx) {
+        int code = op == 0x05 && len >= 22 ? tab[rd16(c)] : 255;
+        if (code == 255)
+            continue;
+        if (code >= PyTuple_GET_SIZE(keys)) {
+            PyErr_SetString(PyExc_ValueError, "scan(): a code has no keys");
+            Py_CLEAR(res);
+            goto done;
         }
-        p += 9 + len;
+        memset(row, 0, (1 + MAXF) * sizeof(double));
+        row[0] = code;
+        if (parse_row(c + 22, (Py_ssize_t)len - 22, PyTuple_GET_ITEM(keys, code), row + 1) != 0) {
+            PyErr_Format(PyExc_ValueError, "scan(): a message on channel %d is not the expected flat JSON",
+                         (int)rd16(c));
+            Py_CLEAR(res);
+            goto done;
+        }
+        row += 1 + MAXF;
     }
 done:
     PyBuffer_Release(&b);
@@ -211,18 +216,12 @@ static PyObject *mcap_raw(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "y*i", &b, &cid))
         return NULL;
     PyObject *out = PyList_New(0);
-    const unsigned char *p = b.buf, *end = p + b.len;
-    while (out != NULL && end - p >= 9) {
-        uint64_t len = rd64(p + 1);
-        if (len > (uint64_t)(end - p - 9))
-            break;
-        if (p[0] == 0x05 && len >= 22 && rd16(p + 9) == cid) {
-            PyObject *d = PyBytes_FromStringAndSize((const char *)p + 9 + 22, (Py_ssize_t)len - 22);
-            if (d == NULL || PyList_Append(out, d) < 0)
-                Py_CLEAR(out);
-            Py_XDECREF(d);
-        }
-        p += 9 + len;
+    const unsigned char *end = (const unsigned char *)b.buf + b.len, *c, *nx;
+    int op;
+    uint64_t len;
+    for (const unsigned char *p = b.buf; out != NULL && (nx = record(p, end, &op, &c, &len)) != NULL; p = nx) {
+        if (op == 0x05 && len >= 22 && rd16(c) == cid)
+            append_new(&out, PyBytes_FromStringAndSize((const char *)c + 22, (Py_ssize_t)len - 22));
     }
     PyBuffer_Release(&b);
     return out;
@@ -235,8 +234,9 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "clients._mcapscan",
-                                    "Fast reader for energyctl's MCAP logs (replay).", -1, methods};
+static struct PyModuleDef module = {.m_base = PyModuleDef_HEAD_INIT, .m_name = "clients._mcapscan",
+                                    .m_doc = "Fast reader for energyctl's MCAP logs (replay).", .m_size = -1,
+                                    .m_methods = methods};
 
 PyMODINIT_FUNC PyInit__mcapscan(void)
 {

@@ -276,6 +276,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from .bench_recorder import bench_recorder
 
         res = bench_recorder(seconds=args.seconds)
+    elif args.what == "tick":
+        from .bench_tick import bench_tick
+
+        res = bench_tick(args.scenario or str(EMBEDDED / "demo.toml"), n=args.n if args.n != 3000 else 20_000)
     elif args.what == "recovery":
         from .faults import recovery
 
@@ -575,16 +579,18 @@ def build_parser() -> argparse.ArgumentParser:
     scen_opts(d)
     d.set_defaults(func=cmd_demo)
 
-    b = sub.add_parser("bench", help="benchmarks: 'sim' (real-time ratio), 'core' (per-step cost), "
+    b = sub.add_parser("bench", help="benchmarks: 'sim' (real-time ratio), 'core' (per-step cost, compiled "
+                                     "and Python), 'tick' (the daemon's whole tick without the network), "
                                      "'latency' (daemon round trip vs bare Zenoh echo), "
                                      "'recorder' (10 kHz stream set vs bare writer), 'soak' (RSS, drops, "
                                      "overruns over minutes), 'recovery' (kill -9 plant / neighbour, time "
                                      "back to +-2 %%)")
-    b.add_argument("what", choices=["sim", "core", "latency", "recorder", "soak", "recovery"])
+    b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "soak", "recovery"])
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
     b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
     b.add_argument("--seconds", type=float, default=10.0, help="recorder: paced run length (default %(default)s)")
-    b.add_argument("-n", type=int, default=3000, help="latency: round trips per target (default %(default)s)")
+    b.add_argument("-n", type=int, default=3000,
+                   help="latency: round trips per target (default %(default)s); tick: ticks (default 20000)")
     b.add_argument("--wait", choices=["block", "spin"], default="block", help="latency: daemon wait strategy")
     b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
     scen_opts(b)

@@ -522,8 +522,8 @@ static PyTypeObject KernelType = {
     .tp_as_buffer = &Kernel_as_buffer,
 };
 
-static struct PyModuleDef kernel_module = {PyModuleDef_HEAD_INIT, "service._kernel",
-                                           "Compiled twin of the control core's step.", -1, NULL};
+static struct PyModuleDef kernel_module = {.m_base = PyModuleDef_HEAD_INIT, .m_name = "service._kernel",
+                                           .m_doc = "Compiled twin of the control core's step.", .m_size = -1};
 
 PyMODINIT_FUNC PyInit__kernel(void)
 {

@@ -83,3 +83,20 @@ def test_report_writes_figures_and_a_summary_for_two_logs(tmp_path, capsys):
     summary = (out / "summary.md").read_text()
     assert "| fblc |" in summary and "| lqr |" in summary and "![interaction.png]" in summary
     assert main(["report", str(tmp_path / "missing.mcap")]) == 2
+
+
+def test_bench_core_and_tick_measure_both_cores_in_one_run(capsys):
+    """The benches behind the README's per-step and per-tick numbers run and report both implementations
+    (no timing is asserted: that is what the benches are for)."""
+    assert main(["bench", "core", "--repeat", "1", "--json", "--set", "timing.duration_s=0.05"]) == 0
+    core = json.loads(capsys.readouterr().out)
+    import importlib.util
+
+    impls = ("c", "python") if importlib.util.find_spec("service._kernel") else ("python",)  # c: if built
+    assert core["steps"] == 5000 and set(core) >= set(impls)
+    assert main(["bench", "tick", "-n", "1500", "--json"]) == 0
+    tick = json.loads(capsys.readouterr().out)
+    for impl in impls:
+        assert tick[impl]["core_impl"] == impl and tick[impl]["p50_us"] > 0
+        assert tick[impl]["loop_delay_measured"] == 3  # the demo's delay, measured from the run it replays
+        assert tick[impl]["recorder_drops"] == {}
