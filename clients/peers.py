@@ -58,6 +58,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
     N = int(round(cfg.duration_s / T))
     t_meas, t_cmd, t_plant = (key(cfg.prefix, cfg.controller_id, leaf) for leaf in ("meas", "cmd", "plant"))
     rec = _trace_recorder(cfg, t_meas, t_cmd, t_plant) if cfg.out else None
+    if rec is not None:
+        rec.wait_ready()  # its start-up would otherwise compete with the first samples
     session = None
     try:
         session = open_session(cfg.zenoh)
@@ -229,7 +231,6 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
     try:
         pub = publisher(session, key(cfg.prefix, cfg.id, "z"))
         sub, meas_q = queued(session, key(cfg.prefix, cfg.plant_id, "meas")) if cfg.plant_id else (None, None)
-        token = session.liveliness().declare_token(key(cfg.prefix, cfg.id, "alive"))
         rec, z_topic = None, f"{cfg.prefix}/{cfg.id}/z"
         if cfg.log_dir:
             from datetime import UTC, datetime
@@ -239,6 +240,8 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
             stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
             rec = RingRecorder(f"{cfg.log_dir}/{cfg.id}-{stamp}.mcap", {z_topic: ("energyctl.Interaction", Z)},
                                {"config": {"json": cfg.model_dump_json()}})
+            rec.wait_ready()
+        token = session.liveliness().declare_token(key(cfg.prefix, cfg.id, "alive"))  # ready: announce
         t_start = time.monotonic()
         period = 1.0 / cfg.rate_hz
         nxt = time.monotonic()

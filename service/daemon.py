@@ -166,7 +166,6 @@ class Daemon:
         serve = {"status": self._status_reply, "config": self._config_reply, "config/set": self._config_set_reply}
         self.queryables = {leaf: s.declare_queryable(key(c.prefix, c.id, leaf), zenoh.handlers.FifoChannel(64))
                            for leaf in serve}
-        self.token = s.liveliness().declare_token(key(c.prefix, c.id, "alive"))
         # neighbours' liveliness tokens: a channel the loop polls (no Python callback: dropping one at close
         # can deadlock zenoh-python against the GIL)
         self._by_id = {nb.id: nb for nb in self.neighbours}
@@ -180,11 +179,15 @@ class Daemon:
             except OSError as e:  # no shared memory, no process: control runs without a log, and says so
                 self.log_error = f"recorder could not start: {e}"
                 print(f"energyctl[{c.id}]: logging degraded: {self.log_error}", file=sys.stderr, flush=True)
+            else:
+                self.recorder.wait_ready()  # a failure shows in status as logging: degraded
         self._threads = [threading.Thread(target=self._serve, args=(self.queryables[leaf], fn), name=leaf,
                                           daemon=True) for leaf, fn in serve.items()]
         for t in self._threads:
             t.start()
         self.state = "active"
+        # alive last: peers that wait for the token (the plant) start when everything here is ready
+        self.token = s.liveliness().declare_token(key(c.prefix, c.id, "alive"))
 
     def _open_recorder(self):
         from datetime import UTC, datetime

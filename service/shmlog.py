@@ -59,9 +59,11 @@ class RingRecorder:
         ctx = mp.get_context("spawn")
         self._events = ctx.Queue()
         self._result = ctx.Queue()
+        self._ready = ctx.Event()
         self._proc = ctx.Process(target=_writer, name="energyctl-recorder", daemon=True,
                                  args=(self._shm.name, slots, self.path, spec, metadata, chunk_size,
-                                       self._events, self._result, rotate_bytes, rotate_s, os.getpid()))
+                                       self._events, self._result, rotate_bytes, rotate_s, os.getpid(),
+                                       self._ready))
         self._proc.start()
         self._buf = self._shm.buf
         self._w = 0
@@ -70,6 +72,20 @@ class RingRecorder:
         self.paths = [self.path]  # all parts, known at close
         self.error: str | None = None
         self._error_lock = threading.Lock()
+
+    def wait_ready(self, timeout_s: float = 15.0) -> bool:
+        """Block until the writer process has started and opened its file (or failed, or timed out).
+
+        A spawned writer imports Python and our modules first: about a second of CPU on this machine, taken
+        from the control loop if it starts meanwhile. Callers wait before announcing themselves alive, so
+        the plant does not start sampling into a stack that is still starting up."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self._ready.wait(0.05):
+                return True
+            if not self._proc.is_alive() or self._buf[17]:
+                return False
+        return False
 
     @property
     def written(self) -> int:
@@ -139,7 +155,7 @@ class RingRecorder:
 
 
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
-            rotate_s=None, parent: int | None = None) -> None:
+            rotate_s=None, parent: int | None = None, ready=None) -> None:
     import importlib
     from queue import Empty
 
@@ -195,6 +211,8 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
         buf = None
         shm.close()
         return
+    if ready is not None:
+        ready.set()
 
     def maybe_rotate(t: float) -> None:
         nonlocal f, part_bytes, part_t0

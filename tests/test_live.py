@@ -210,3 +210,20 @@ def test_two_controlled_components_on_one_network_each_reproduce_their_own_run(t
 
     rep = report([str(stacks[1][1])], str(tmp_path / "report"))
     assert rep["metrics"]["plant1"]["v_min"] == results[1]["metrics"]["v_min"]
+
+
+def test_the_daemon_is_alive_only_when_its_recorder_is_writing(tmp_path):
+    """The liveliness token is the plant's start signal: it must not appear while the recorder process is still
+    starting (importing Python for about a second, which took the CPU from the first samples)."""
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    comp, _p, _l = configs_from_scenario(scn, ep, lockstep=False, rate_hz=1000.0)
+    comp["log_dir"] = str(tmp_path)
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    try:
+        d.open()
+        assert d.recorder is not None and d.recorder._ready.is_set()  # open() waited for the writer ...
+        assert len(list(tmp_path.glob("source-*.mcap"))) == 1  # ... which had created the file
+        assert d.token is not None  # and only then announced the daemon
+    finally:
+        d.close()
