@@ -1,10 +1,15 @@
-"""energyctl bench tick: the daemon's whole tick (decode, checks, core, publish, record) without the network.
+"""Benches that drive a real daemon by hand, without the network.
 
-An opened daemon (loopback Zenoh session, no peers, recorder process writing to a temporary directory)
-is handed the measurements of a closed-loop simulator run one by one through the same method the loop
-calls, with the loop's own statistics update; nothing arrives over a socket and nothing waits, so this is
-what our code costs per tick, apart from the wake-ups and cross-process scheduling that `bench latency`
-also sees. The compiled and the Python core are measured in the same run.
+``energyctl bench tick``: the daemon's whole tick (decode, checks, core, publish, record). An opened daemon
+(loopback Zenoh session, no peers, recorder process writing to a temporary directory) is handed the
+measurements of a closed-loop simulator run one by one through the same method the loop calls, with the
+loop's own statistics update; nothing arrives over a socket and nothing waits, so this is what our code
+costs per tick, apart from the wake-ups and cross-process scheduling that `bench latency` also sees. The
+compiled and the Python core are measured in the same run.
+
+``energyctl bench replay``: the same daemon records a long 10 kHz log this way (a real daemon log: every
+channel, the tick index, the metadata), then ``energyctl replay`` replays it from the tick index and from
+the JSON channels, same run.
 """
 
 from __future__ import annotations
@@ -12,65 +17,96 @@ from __future__ import annotations
 import gc
 import tempfile
 import time
+from pathlib import Path
 
 from schemas.codec import MEAS
 
 
-def bench_tick(scenario_path: str, n: int = 20_000) -> dict:
-    from schemas.component import ComponentConfig, config_from_dict
+def _trace(scenario_path: str, n: int):
     from schemas.scenario import load_scenario
-    from service.bus import free_tcp_port
-    from service.daemon import Daemon
     from service.sim import run
+
+    scn = load_scenario(scenario_path, [f"timing.duration_s={n / 10_000.0}"])
+    return scn, {k: v.tolist() for k, v in run(scn).trace.items()}
+
+
+def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: dict | None = None,
+                 n: int | None = None) -> tuple[list[int], dict]:
+    """Tick an opened daemon by hand through the trace's measurements (the first n); (exec times ns, final
+    status). hooks: {tick: fn(daemon)} called between ticks, where the loop applies config changes."""
+    from schemas.component import ComponentConfig, config_from_dict
+    from service.bus import free_tcp_port
+    from service.core import make_core
+    from service.daemon import Daemon
 
     from .live import configs_from_scenario
 
-    scn = load_scenario(scenario_path, [f"timing.duration_s={n / 10_000.0}"])
-    tr = {k: v.tolist() for k, v in run(scn).trace.items()}
+    m = len(tr["t"]) if n is None else n
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False,
+                                         rate_hz=scn.timing.control_rate_hz)
+    comp["neighbour_stale_s"] = 1e9
+    comp["log_dir"] = log_dir
+    comp["delay_samples"] = scn.timing.delay_samples
+    comp["log_queue"] = 1 << 20  # the writer keeps up on average; a long run must not drop at start-up
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    c = d.cfg
+    d.core = make_core(c.controller, c.model, d.period_s, c.delay_samples, impl)
+    d.open()
+    nb = d.neighbours[0]
+    times = [0] * m
+    try:
+        now = time.monotonic_ns
+        gc.collect()
+        gc.freeze()
+        for k in range(m):
+            if hooks and k in hooks:
+                hooks[k](d)
+            payload = MEAS.encode(k, tr["t"][k], tr["i_meas"][k], tr["v_meas"][k], tr["u_meas"][k],
+                                  tr["i_load_meas"][k])
+            nb.P, nb.P_dot, nb.rx_ns, nb.count = -tr["P_r_in"][k], -tr["P_r_in_dot"][k], now(), k + 1
+            t0 = now()
+            d._tick(payload, t0)
+            t1 = now()
+            d.stats.record(0, t1 - t0)
+            times[k] = t1 - t0
+        gc.unfreeze()
+        st = d.status()
+    finally:
+        d.close()
+    st["log_path"] = getattr(d, "log_path", None)
+    return times, st
+
+
+def bench_tick(scenario_path: str, n: int = 20_000) -> dict:
+    scn, tr = _trace(scenario_path, n)
     m = len(tr["t"])
-    payloads = [MEAS.encode(k, tr["t"][k], tr["i_meas"][k], tr["v_meas"][k], tr["u_meas"][k], tr["i_load_meas"][k])
-                for k in range(m)]
     res: dict = {"bench": "tick", "scenario": scn.name, "ticks": m}
     for impl in ("c", "python"):
         with tempfile.TemporaryDirectory() as tmp:
-            comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False,
-                                                 rate_hz=scn.timing.control_rate_hz)
-            comp["neighbour_stale_s"] = 1e9
-            comp["log_dir"] = tmp
-            comp["delay_samples"] = scn.timing.delay_samples
-            d = Daemon(config_from_dict(ComponentConfig, comp))
             try:
-                d.core = _core(d, impl)
+                times, st = drive_daemon(scn, tr, tmp, impl)
             except ImportError:
                 continue
-            d.open()
-            nb = d.neighbours[0]
-            try:
-                times = [0] * m
-                now = time.monotonic_ns
-                gc.collect()
-                gc.freeze()
-                for k in range(m):
-                    nb.P, nb.P_dot, nb.rx_ns, nb.count = -tr["P_r_in"][k], -tr["P_r_in_dot"][k], now(), k + 1
-                    t0 = now()
-                    d._tick(payloads[k], t0)
-                    t1 = now()
-                    d.stats.record(0, t1 - t0)
-                    times[k] = t1 - t0
-                gc.unfreeze()
-                st = d.status()
-            finally:
-                d.close()
-            times.sort()
-            res[impl] = {"p50_us": times[m // 2] / 1e3, "p99_us": times[int(m * 0.99)] / 1e3,
-                         "max_us": times[-1] / 1e3, "core_impl": d.core.impl,
-                         "recorder_drops": (st.get("logging") or {}).get("drops"),
-                         "loop_delay_measured": st["loop_delay"]["measured_samples"]}
+        times.sort()
+        res[impl] = {"p50_us": times[m // 2] / 1e3, "p99_us": times[int(m * 0.99)] / 1e3,
+                     "max_us": times[-1] / 1e3, "core_impl": impl,
+                     "recorder_drops": (st.get("logging") or {}).get("drops"),
+                     "loop_delay_measured": st["loop_delay"]["measured_samples"]}
     return res
 
 
-def _core(d, impl: str):
-    from service.core import make_core
+def bench_replay(scenario_path: str, seconds: float = 20.0, keep: str | None = None) -> dict:
+    """Record seconds of a 10 kHz daemon log by hand, replay it from the index and from the JSON channels."""
+    import clients.replay as rp
 
-    c = d.cfg
-    return make_core(c.controller, c.model, d.period_s, c.delay_samples, impl)
+    scn, tr = _trace(scenario_path, int(seconds * 10_000))
+    with tempfile.TemporaryDirectory() as tmp:
+        _times, st = drive_daemon(scn, tr, keep or tmp)
+        log = st["log_path"]
+        res: dict = {"bench": "replay", "log": log if keep else None, "ticks": len(tr["t"]),
+                     "log_bytes": Path(log).stat().st_size, "recorder_drops": (st.get("logging") or {}).get("drops")}
+        for name, use_index in (("index", True), ("json", False)):
+            r = rp.replay(log, progress=False, use_index=use_index)
+            res[name] = {"identical": r["identical"], "compared": r["compared"], "read_from": r["read_from"],
+                         "wall_s": r["wall_s"], "speed_x_realtime": r["speed_x_realtime"]}
+    return res

@@ -280,6 +280,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from .bench_tick import bench_tick
 
         res = bench_tick(args.scenario or str(EMBEDDED / "demo.toml"), n=args.n if args.n != 3000 else 20_000)
+    elif args.what == "replay":
+        from .bench_tick import bench_replay
+
+        res = bench_replay(args.scenario or str(EMBEDDED / "demo.toml"), seconds=args.seconds)
     elif args.what == "recovery":
         from .faults import recovery
 
@@ -424,7 +428,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if (args.set or args.controller) and not args.out:
         raise ScenarioError("replay: a what-if (--set/--controller) needs --out NEW.mcap")
     try:
-        res = replay(args.log, args.set, args.controller, args.out, progress=not args.json)
+        res = replay(args.log, args.set, args.controller, args.out, progress=not args.json,
+                     use_index=not args.no_index)
     except (ReplayError, OSError) as e:
         print(f"energyctl replay: {e}", file=sys.stderr)
         return 2
@@ -434,7 +439,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print(f"what-if: {res['ticks']} ticks replayed into {res['out']} ({res['wall_s']:.2f} s)")
     elif res["identical"]:
         print(f"identical: {res['compared']} commands reproduced bit for bit "
-              f"({res['ticks']} ticks, {res['wall_s']:.2f} s, {res['speed_x_realtime']:.1f}x real time)")
+              f"({res['ticks']} ticks, {res['wall_s']:.2f} s, {res['speed_x_realtime']:.1f}x real time, "
+              f"read from {'the tick index' if 'index' in res['read_from'] else 'the JSON channels'})")
     else:
         d = res["first_divergence"]
         print(f"diverged at t = {d['t']:.6f} s (seq {d['seq']}): {d['field']} logged {d['logged']!r}, "
@@ -582,13 +588,15 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="benchmarks: 'sim' (real-time ratio), 'core' (per-step cost, compiled "
                                      "and Python), 'tick' (the daemon's whole tick without the network), "
                                      "'latency' (daemon round trip vs bare Zenoh echo), "
-                                     "'recorder' (10 kHz stream set vs bare writer), 'soak' (RSS, drops, "
+                                     "'recorder' (10 kHz stream set vs bare writer), 'replay' (a long 10 kHz "
+                                     "daemon log replayed from its tick index and from JSON), 'soak' (RSS, drops, "
                                      "overruns over minutes), 'recovery' (kill -9 plant / neighbour, time "
                                      "back to +-2 %%)")
-    b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "soak", "recovery"])
+    b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "replay", "soak", "recovery"])
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
     b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
-    b.add_argument("--seconds", type=float, default=10.0, help="recorder: paced run length (default %(default)s)")
+    b.add_argument("--seconds", type=float, default=10.0,
+                   help="recorder: paced run length; replay: log length (default %(default)s)")
     b.add_argument("-n", type=int, default=3000,
                    help="latency: round trips per target (default %(default)s); tick: ticks (default 20000)")
     b.add_argument("--wait", choices=["block", "spin"], default="block", help="latency: daemon wait strategy")
@@ -671,6 +679,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--set", action="append", metavar="controller.key=value")
     rp.add_argument("--controller", choices=CONTROLLERS)
     rp.add_argument("--out", metavar="NEW.mcap")
+    rp.add_argument("--no-index", action="store_true",
+                    help="read the JSON channels (what Foxglove shows) even where the log has a tick index")
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=cmd_replay)
 

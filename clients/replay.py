@@ -63,6 +63,19 @@ class LogData:
     core: dict | None = None
     rows: list[np.ndarray] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
+    source: str = "json"  # "index": read from the tick index
+    ticks: np.ndarray | None = None  # from the index: n x 10 (TickIndex.COLUMNS), instead of rows
+
+    def as_rows(self) -> list[np.ndarray]:
+        """rows, also for a log read from its index (meas, z_in, cmd of each tick, as the scanner lays them)."""
+        if self.ticks is None:
+            return self.rows
+        t, n = self.ticks, len(self.ticks)
+        rows = np.zeros((3 * n, ROW))
+        rows[0::3, 0], rows[0::3, 1:7] = 0, t[:, 0:6]
+        rows[1::3, 0], rows[1::3, 1], rows[1::3, 3:6] = 1, t[:, 0], t[:, 6:9]
+        rows[2::3, 0], rows[2::3, 1], rows[2::3, 3] = 2, t[:, 0], t[:, 9]
+        return [rows]
 
 
 def _top_level(data: bytes):
@@ -99,11 +112,35 @@ def _core_meta(data: bytes) -> dict | None:
     return None
 
 
-def _read_bytes(path: str | Path) -> bytes:
-    data = Path(path).read_bytes()
+def _read_bytes(path: str | Path):
+    """The file, memory-mapped (read-only): a reader that follows the summary touches only the pages it needs."""
+    import mmap
+
+    with open(path, "rb") as f:
+        try:
+            data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        except ValueError:  # an empty file cannot be mapped
+            data = b""
     if data[:8] != b"\x89MCAP0\r\n":
         raise ReplayError(f"{path}: not an MCAP file")
     return data
+
+
+def _chunk(data: bytes, c: int, dctx) -> bytes:
+    """The records of the chunk whose content starts at c, decompressed."""
+    size = struct.unpack_from("<Q", data, c + 16)[0]  # start, end, uncompressed size, crc, compression, records
+    comp, c = _string(data, c + 28)
+    rl = struct.unpack_from("<Q", data, c)[0]
+    raw = data[c + 8:c + 8 + rl]
+    if comp == "zstd":
+        return dctx.decompress(raw, max_output_size=size)
+    if comp == "lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(raw)
+    if comp:
+        raise ReplayError(f"chunk compression {comp!r} not supported")
+    return raw
 
 
 def _records(path: str | Path, data: bytes):
@@ -113,20 +150,34 @@ def _records(path: str | Path, data: bytes):
     yield memoryview(data)[8:]  # the top level (channels, metadata, unchunked messages)
     dctx = zstandard.ZstdDecompressor()
     for op, c, _ln in _top_level(data):
-        if op == 0x06:  # chunk: start, end, uncompressed size, crc, compression, records
-            size = struct.unpack_from("<Q", data, c + 16)[0]
-            comp, c = _string(data, c + 28)
-            rl = struct.unpack_from("<Q", data, c)[0]
-            raw = data[c + 8:c + 8 + rl]
-            if comp == "zstd":
-                raw = dctx.decompress(raw, max_output_size=size)
-            elif comp == "lz4":
-                import lz4.frame
+        if op == 0x06:
+            yield _chunk(data, c, dctx)
 
-                raw = lz4.frame.decompress(raw)
-            elif comp:
-                raise ReplayError(f"{path}: chunk compression {comp!r} not supported")
-            yield raw
+
+def _channel_messages(data: bytes, cids: set[int]) -> list[bytes]:
+    """The data of the messages on these channels, from only the chunks that the summary's chunk indexes say
+    hold any (a complete file)."""
+    import zstandard
+
+    dctx = zstandard.ZstdDecompressor()
+    out: list[bytes] = []
+    for op, c, _ln in _top_level(data):
+        if op != 0x08:  # chunk index: start, end, chunk offset, chunk length, {channel: message index offset}, ...
+            continue
+        n = struct.unpack_from("<I", data, c + 32)[0]
+        if not cids & {cid for cid, _off in struct.iter_unpack("<HQ", data[c + 36:c + 36 + n])}:
+            continue
+        recs = _chunk(data, struct.unpack_from("<Q", data, c + 16)[0] + 9, dctx)
+        if _mcapscan is not None:
+            out += [m for cid in sorted(cids) for m in _mcapscan.raw(recs, cid)]
+            continue
+        off = 0
+        while off + 9 <= len(recs):  # few chunks, rare messages: a plain walk
+            op2, ln = recs[off], struct.unpack_from("<Q", recs, off + 1)[0]
+            if op2 == 0x05 and struct.unpack_from("<H", recs, off + 9)[0] in cids:
+                out.append(bytes(recs[off + 9 + 22:off + 9 + ln]))
+            off += 9 + ln
+    return out
 
 
 def _read_fast(path: str | Path) -> LogData:
@@ -178,9 +229,58 @@ def _read_general(path: str | Path) -> LogData:
     return out
 
 
-def read_log(path: str | Path) -> LogData:
-    """A log's replay inputs, by the fast scanner if built (and the log is the recorder's flat JSON), else
-    by the general reader."""
+def _read_index(path: str | Path, data: bytes) -> LogData | None:
+    """A log's replay inputs from its tick index (service.shmlog.TickIndex attachments), or None when it has
+    none or the index does not account for every tick of the file (no summary: a killed writer; a dropped
+    ring slot; a tick split by rotation): then the JSON channels are read instead."""
+    from service.shmlog import TickIndex
+
+    topics: dict[int, str] = {}
+    counts: dict[int, int] | None = None
+    blobs: list[bytes] = []
+    has_index = False
+    for op, c, _ln in _top_level(data):
+        if op == 0x04:  # channel: id, schema id, topic
+            topics[struct.unpack_from("<H", data, c)[0]] = _string(data, c + 4)[0]
+        elif op == 0x09:  # attachment: log time, create time, name, media type, data
+            name, c2 = _string(data, c + 16)
+            media, c2 = _string(data, c2)
+            if name == TickIndex.NAME and media == TickIndex.MEDIA_TYPE:
+                n = struct.unpack_from("<Q", data, c2)[0]
+                blobs.append(data[c2 + 8:c2 + 8 + n])
+        elif op == 0x0B:  # statistics: ..., channel message counts (u32 byte length, then u16 -> u64)
+            end = c + 46 + struct.unpack_from("<I", data, c + 42)[0]
+            counts = dict(struct.iter_unpack("<HQ", data[c + 46:end]))
+        elif op == 0x0C and _string(data, c)[0] == "tick_index":
+            has_index = True
+    if not has_index or counts is None:
+        return None
+    import zstandard
+
+    width = len(TickIndex.COLUMNS)
+    dctx = zstandard.ZstdDecompressor()
+    ticks = np.frombuffer(b"".join(dctx.decompress(b) for b in blobs), dtype="<f8").reshape(-1, width)
+    by_leaf: dict[str, int] = {}
+    for cid, t in topics.items():
+        leaf = t.rsplit("/", 1)[-1]
+        by_leaf[leaf] = by_leaf.get(leaf, 0) + counts.get(cid, 0)
+    if not (len(ticks) == by_leaf.get("meas") == by_leaf.get("z_in") == by_leaf.get("cmd")):
+        return None
+    out = LogData(core=_core_meta(data), ticks=ticks)
+    events = {cid for cid, t in topics.items() if t.rsplit("/", 1)[-1] == "events" and counts.get(cid)}
+    if events:  # rare: the summary's chunk indexes lead to the few chunks that hold them
+        out.events = [d for d in map(json.loads, _channel_messages(data, events)) if d.get("kind") == "config"]
+    out.source = "index"
+    return out
+
+
+def read_log(path: str | Path, use_index: bool = True) -> LogData:
+    """A log's replay inputs: from its tick index if it has a complete one, else by the fast scanner if built
+    (and the log is the recorder's flat JSON), else by the general reader."""
+    data = _read_bytes(path)
+    got = _read_index(path, data) if use_index else None
+    if got is not None:
+        return got
     if _mcapscan is not None:
         try:
             return _read_fast(path)
@@ -195,41 +295,71 @@ class Ticks:
 
     core: dict
     keys: np.ndarray  # int64 epoch << SEQ_BITS | seq
-    rows: np.ndarray  # n x 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped
+    rows: np.ndarray  # n x 9 (or wider, the extra columns ignored): seq, t, i, v, u, i_load, P_r_in, P_r_in_dot,
+    #                   stepped
     logged: np.ndarray  # n logged du/dt (NaN where no command was logged)
     has_cmd: np.ndarray  # bool
     cfg_events: dict[int, list]  # key -> controller configs applied before that tick
     restarts: int
+    sources: list[str]  # per part: "index" or "json"
 
 
 def _last_per_key(keys: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Sorted unique keys and, for each, the values of its last occurrence (a later message wins)."""
+    if len(keys) < 2 or bool((keys[1:] > keys[:-1]).all()):  # already sorted and unique (the usual log): as is
+        return keys, vals
     rk = keys[::-1]
     uk, idx = np.unique(rk, return_index=True)
     return uk, vals[::-1][idx]
 
 
-def collect(parts: list) -> Ticks:
-    data = [read_log(p) for p in parts]
+def _epochs(seq: np.ndarray, is_meas: np.ndarray | None = None) -> np.ndarray:
+    """Plant epoch of each row: a new one begins at a measurement with seq 0 after a higher one (a restart)."""
+    sel = np.arange(len(seq)) if is_meas is None else np.nonzero(is_meas)[0]
+    mseq = seq[sel]
+    prev = np.concatenate(([-1.0], mseq[:-1]))
+    restart = np.zeros(len(seq), dtype=np.int64)
+    restart[sel] = (mseq == 0) & (prev > 0)
+    return np.cumsum(restart)
+
+
+def _from_index(data: list[LogData]) -> Ticks | None:
+    """Ticks straight from the index rows (already one per tick, in order); None if a seq repeats within an
+    epoch (then the general join decides which message wins)."""
+    t = np.concatenate([d.ticks for d in data]) if len(data) > 1 else data[0].ticks
+    epoch = _epochs(t[:, 0])
+    keys = (epoch << SEQ_BITS) | t[:, 0].astype(np.int64)
+    if len(keys) > 1 and not bool((keys[1:] > keys[:-1]).all()):
+        return None
+    if any(d.events for d in data):
+        return None  # config events: let the general path place them (rare; same result, slower)
+    return Ticks(data[0].core, keys, t, t[:, 9], np.ones(len(t), dtype=bool), {}, int(epoch[-1]) if len(t) else 0,
+                 [d.source for d in data])
+
+
+def collect(parts: list, use_index: bool = True) -> Ticks:
+    data = [read_log(p, use_index) for p in parts]
     if data[0].core is None:
         raise ReplayError(f"{parts[0]}: no 'core' metadata record (not an energyctl log, or written before "
                           "replay support)")
-    rows = np.concatenate([r for d in data for r in d.rows]) if data else np.zeros((0, 9))
+    if all(d.ticks is not None for d in data):
+        fast = _from_index(data)
+        if fast is not None:
+            return fast
+    rows = np.concatenate([r for d in data for r in d.as_rows()]) if data else np.zeros((0, 9))
     code, seq = rows[:, 0], rows[:, 1]
     is_meas = code == 0
-    mseq = seq[is_meas]
-    prev = np.concatenate(([-1.0], mseq[:-1]))
-    restart_at_meas = (mseq == 0) & (prev > 0)  # the plant restarted: a new epoch
-    restart = np.zeros(len(rows), dtype=np.int64)
-    restart[np.nonzero(is_meas)[0]] = restart_at_meas
-    epoch = np.cumsum(restart)
+    epoch = _epochs(seq, is_meas)
     key = (epoch << SEQ_BITS) | seq.astype(np.int64)
     mk, mv = _last_per_key(key[is_meas], rows[is_meas])
     zsel, csel = code == 1, code == 2
     zk, zv = _last_per_key(key[zsel], rows[zsel])
     ck, cv = _last_per_key(key[csel], rows[csel])
-    keys = np.intersect1d(mk, zk, assume_unique=True)
-    m, z = mv[np.searchsorted(mk, keys)], zv[np.searchsorted(zk, keys)]
+    if np.array_equal(mk, zk):  # every tick has both (the usual log): no join needed
+        keys, m, z = mk, mv, zv
+    else:
+        keys = np.intersect1d(mk, zk, assume_unique=True)
+        m, z = mv[np.searchsorted(mk, keys)], zv[np.searchsorted(zk, keys)]
     out = np.empty((len(keys), 9))
     out[:, 0:6] = m[:, 1:7]  # seq, t, i, v, u, i_load
     out[:, 6:8] = z[:, 3:5]  # P_r_in, P_r_in_dot
@@ -250,15 +380,16 @@ def collect(parts: list) -> Ticks:
                     ep_found = e
         ep = last_epoch if ep_found is None else ep_found
         cfg_events.setdefault((ep << SEQ_BITS) | s, []).append(json.loads(d["detail"]))
-    return Ticks(data[0].core, keys, out, logged, has_cmd, cfg_events, last_epoch)
+    return Ticks(data[0].core, keys, out, logged, has_cmd, cfg_events, last_epoch, [d.source for d in data])
 
 
 def replay(path: str | Path | list, overrides: list[str] | None = None, controller: str | None = None,
-           out: str | None = None, progress: bool = True) -> dict:
-    """Replay one log, or the parts of a rotated log in order (one core across all of them)."""
+           out: str | None = None, progress: bool = True, use_index: bool = True) -> dict:
+    """Replay one log, or the parts of a rotated log in order (one core across all of them). use_index=False
+    reads the JSON channels even where a tick index exists (the messages Foxglove shows)."""
     t0 = time.perf_counter()
     parts = [path] if isinstance(path, str | Path) else list(path)
-    tk = collect(parts)
+    tk = collect(parts, use_index)
     path = parts[0] if len(parts) == 1 else ", ".join(map(str, parts))
     ovs = list(overrides or [])
     if controller:
@@ -305,7 +436,7 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     wall = time.perf_counter() - t0
     span = float(tk.rows[-1, 1] - tk.rows[0, 1]) if n else 0.0
     res = {"log": str(path), "ticks": n, "compared": int(tk.has_cmd.sum()) if not what_if else 0,
-           "plant_restarts": tk.restarts, "core": core.impl,
+           "plant_restarts": tk.restarts, "core": core.impl, "read_from": ",".join(tk.sources),
            "identical": first is None and not what_if, "first_divergence": first, "wall_s": wall,
            "log_span_s": span, "speed_x_realtime": span / wall if wall > 0 else None}
     if out:

@@ -445,24 +445,26 @@ static PyObject *Kernel_step(Kernel *self, PyObject *const *args, Py_ssize_t nar
     return PyBool_FromLong(took);
 }
 
-/* run(inputs, du_out, resets): a whole replay segment without returning to Python. inputs holds n rows of
- * 9 doubles (seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped); a row with stepped == 0 is not given to the
- * core and answers 0.0 (the daemon held). du_out receives n doubles. Returns None. */
+/* run(inputs, du_out, width=9): a whole replay segment without returning to Python. inputs holds n rows of
+ * width >= 9 doubles, the first 9 (seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped) read; a row with
+ * stepped == 0 is not given to the core and answers 0.0 (the daemon held). du_out receives n doubles. */
 static PyObject *Kernel_run(Kernel *self, PyObject *args)
 {
     Py_buffer in, out;
-    if (!PyArg_ParseTuple(args, "y*w*", &in, &out))
+    int width = 9;
+    if (!PyArg_ParseTuple(args, "y*w*|i", &in, &out, &width))
         return NULL;
     PyObject *res = NULL;
-    Py_ssize_t n = in.len / (Py_ssize_t)(9 * sizeof(double));
-    if (in.len != n * (Py_ssize_t)(9 * sizeof(double)) || out.len != n * (Py_ssize_t)sizeof(double)) {
-        PyErr_SetString(PyExc_ValueError, "run(): inputs must be n x 9 doubles and du_out n doubles");
+    Py_ssize_t row = (Py_ssize_t)((width >= 9 ? width : 9) * sizeof(double));
+    Py_ssize_t n = in.len / row;
+    if (width < 9 || in.len != n * row || out.len != n * (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "run(): inputs must be n x width (>= 9) doubles and du_out n doubles");
         goto done;
     }
     const double *x = (const double *)in.buf;
     double *du = (double *)out.buf;
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t j = 0; j < n; j++, x += 9) {
+    for (Py_ssize_t j = 0; j < n; j++, x += width) {
         if (x[8] != 0.0) {
             kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
             du[j] = self->o[O_DU];

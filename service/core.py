@@ -213,8 +213,9 @@ class CoreBase:
         self._keC = 0.5 * c.K_E_per_s * self._C if c.regulation == "energy" else 0.0
 
     def run_batch(self, rows, du_out) -> None:
-        """Step n rows (n x 9 floats: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped; stepped 0 = not given to
-        the core, answers 0.0) and write each du/dt into du_out (log replay; the compiled core does it in C)."""
+        """Step n rows (n x w floats, w >= 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped, then anything;
+        stepped 0 = not given to the core, answers 0.0) and write each du/dt into du_out (log replay; the
+        compiled core does it in C)."""
         for j, r in enumerate(rows.tolist()):
             du_out[j] = self.step(Sample(int(r[0]), *r[1:6]), Incoming(r[6], r[7])).du_dt if r[8] else 0.0
 

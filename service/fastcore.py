@@ -138,6 +138,7 @@ class CompiledCore(CoreBase):
         return self.out
 
     def run_batch(self, rows, du_out) -> None:
-        """Step n rows (a buffer of n x 9 doubles: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped) and
-        write each du/dt (0.0 where stepped is 0: not given to the core) into du_out (n doubles)."""
-        self._k.run(rows, du_out)
+        """Step n rows (a C-contiguous n x w array of doubles, w >= 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot,
+        stepped, then anything) and write each du/dt (0.0 where stepped is 0: not given to the core) into du_out
+        (n doubles)."""
+        self._k.run(rows, du_out, rows.shape[1])

@@ -59,6 +59,10 @@ class McapFile:
     def metadata(self, name: str, data: dict[str, str]) -> None:
         self._w.add_metadata(name, data)
 
+    def attachment(self, name: str, media_type: str, data: bytes, t_s: float) -> None:
+        ns = int(round(t_s * 1e9))
+        self._w.add_attachment(create_time=ns, log_time=ns, name=name, media_type=media_type, data=data)
+
     def close(self) -> None:
         self._w.finish()
         self._f.close()

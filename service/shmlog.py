@@ -154,6 +154,67 @@ class RingRecorder:
         self._shm.unlink()
 
 
+class TickIndex:
+    """Replay index written beside the JSON channels: per tick, the measurement, what else the core was given and
+    its answer, as one row of doubles (``COLUMNS``), flushed every ``every`` ticks as a zstd-compressed MCAP
+    attachment. Foxglove reads the JSON channels; replay reads these rows and skips decompressing and parsing
+    the JSON (it uses them only when their count equals the file's meas and z_in counts: same ticks, same
+    doubles, since both are written from the same ring slots)."""
+
+    NAME = "energyctl.ticks"
+    MEDIA_TYPE = "application/x-energyctl-ticks+zstd"
+    COLUMNS = ("seq", "t", "i", "v", "u", "i_load", "P_r_in", "P_r_in_dot", "stepped", "du_dt")
+
+    def __init__(self, k_meas: int, k_zin: int, k_cmd: int, every: int = 8192):
+        from array import array
+
+        self.kinds = (k_meas, k_zin, k_cmd)
+        self.every = every
+        self._array = array
+        self.rows = array("d")
+        self._m: tuple | None = None
+        self._z: tuple | None = None
+
+    @classmethod
+    def for_topics(cls, topics: list[str], magics: list[int]) -> TickIndex | None:
+        """The index for a daemon's stream set (meas, z_in and cmd with the wire codecs), else None."""
+        from schemas.codec import CMD, MEAS, TICK_IN
+
+        want = {("meas", MEAS.magic), ("z_in", TICK_IN.magic), ("cmd", CMD.magic)}
+        found = {(t.rsplit("/", 1)[-1], m): k for k, (t, m) in enumerate(zip(topics, magics, strict=True))}
+        if not want <= set(found):
+            return None
+        return cls(found["meas", MEAS.magic], found["z_in", TICK_IN.magic], found["cmd", CMD.magic])
+
+    def metadata(self) -> dict[str, str]:
+        return {"attachment": self.NAME, "media_type": self.MEDIA_TYPE, "columns": ",".join(self.COLUMNS),
+                "dtype": "<f8"}
+
+    def take(self, k: int, vals: tuple) -> bool:
+        """One message of the three streams; True when a flush is due."""
+        km, kz, _ = self.kinds
+        if k == km:
+            self._m = vals
+        elif k == kz:
+            self._z = vals
+        else:
+            m, z = self._m, self._z
+            if m is not None and z is not None and m[0] == z[0] == vals[0]:
+                self.rows.extend((m[0], m[1], m[2], m[3], m[4], m[5], z[2], z[3], z[4], vals[2]))
+            self._m = self._z = None
+            return len(self.rows) >= self.every * len(self.COLUMNS)
+        return False
+
+    def flush(self, f) -> None:
+        if not self.rows:
+            return
+        import zstandard
+
+        f.attachment(self.NAME, self.MEDIA_TYPE, zstandard.ZstdCompressor(level=1).compress(self.rows.tobytes()),
+                     self.rows[1])
+        self.rows = self._array("d")
+
+
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
             rotate_s=None, parent: int | None = None, ready=None) -> None:
     import importlib
@@ -192,12 +253,16 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
 
     ev_fields = tuple(Event.model_fields)
     paths = [path]
+    index = TickIndex.for_topics(topics, [m for *_, m in spec])
+    index_kinds = index.kinds if index is not None else ()
 
-    def open_part(p: str, index: int) -> McapFile:
+    def open_part(p: str, part: int) -> McapFile:
         mf = McapFile(p, chunk_size=chunk_size)
         for md_name, data in metadata.items():
             mf.metadata(md_name, data)
-        mf.metadata("part", {"index": str(index), "first": str(path)})
+        mf.metadata("part", {"index": str(part), "first": str(path)})
+        if index is not None:
+            mf.metadata("tick_index", index.metadata())
         for topic, schema, _ref, _magic in spec:
             mf.channel(topic, schema)
         return mf
@@ -219,6 +284,8 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
         if part_t0 is None:
             part_t0 = t
         if (rotate_bytes and part_bytes >= rotate_bytes) or (rotate_s and t - part_t0 >= rotate_s):
+            if index is not None:
+                index.flush(f)
             f.close()
             stem = path[:-5] if path.endswith(".mcap") else path
             nxt = f"{stem}-{len(paths)}.mcap"
@@ -248,6 +315,8 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
                 c = codecs[k]
                 vals = c.struct.unpack_from(buf, off + _PAYLOAD)[2:]
                 buf[off] = 0  # free it
+                if k in index_kinds and index.take(k, vals):
+                    index.flush(f)
                 if bools[k]:
                     vals = tuple(("true" if v else "false") if j in bools[k] else v for j, v in enumerate(vals))
                 text = templates[k] % vals
@@ -286,6 +355,8 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
         buf[17] = 1
     finally:
         try:
+            if index is not None and error is None:
+                index.flush(f)
             f.close()
         except Exception as e:  # noqa: BLE001
             error = error or f"{type(e).__name__}: {e}"

@@ -76,8 +76,9 @@ def test_kill9_neighbour_token_gone_then_back(tmp_path):
     with Rig(scn(), tmp_path, duration_s=5.0) as rig:
         running(rig)
         rig.signal("load", signal.SIGKILL)
-        st = rig.wait_status(lambda s: s["neighbours"]["load"]["alive"] is False, 10.0)
-        assert st and st["reference"] == "none"
+        # (the loop sees the token go, then sets its reference on its next tick: wait for both)
+        st = rig.wait_status(lambda s: s["neighbours"]["load"]["alive"] is False and s["reference"] == "none", 10.0)
+        assert st, rig.status()
         # held from then on (a status may catch the tick between its reference and its command: ask again)
         assert rig.wait_status(lambda s: s["reference"] == "none" and s["last_command"]["du_dt"] == 0.0, 5.0)
         t_gone = rig.sample_t(st)

@@ -103,8 +103,13 @@ def test_batch_run_equals_step_by_step():
     du = np.zeros(len(rows))
     core.run_batch(buf, du)
     assert du.tolist() == want
-    with pytest.raises(ValueError, match="n x 9"):
+    with pytest.raises(ValueError, match="n x width"):
         core.run_batch(buf[:, :8].copy(), du)
+    wide = np.hstack([buf, np.full((len(rows), 1), 7.0)])  # extra columns (the tick index's du) are ignored
+    du2 = np.zeros(len(rows))
+    core2 = make_core(scn.controller, scn.model, T, 3, "c")
+    core2.run_batch(wide, du2)
+    assert du2.tolist() == want
 
 
 finite = st.floats(-1e4, 1e4, allow_nan=False)

@@ -44,7 +44,7 @@ def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
     from clients.replay import replay
 
     r = replay(res["daemon_log"], progress=False)
-    assert r["identical"] and r["compared"] == 500
+    assert r["identical"] and r["compared"] == 500 and r["read_from"] == "index"
     # the daemon measured the plant's delay line from u and its own commands, and compensates exactly that
     ld = res["daemon"]["loop_delay"]
     assert ld["measured_samples"] == scn.timing.delay_samples == 3 and not ld["mismatch"]

@@ -218,3 +218,42 @@ def test_fast_log_reader_gives_the_general_readers_arrays(tmp_path):
     with pytest.raises(ValueError, match="not the expected flat JSON"):
         rp._read_fast(odd)
     assert np.concatenate(rp.read_log(odd).rows)[0, 1:7].tolist() == [0.0, 0.0, 1.0, 80.0, 80.0, 1.0]
+
+
+def test_tick_index_gives_the_json_channels_inputs_and_is_used_only_when_complete(tmp_path):
+    """A daemon log carries a tick index (zstd attachments of one row per tick) beside its JSON channels.
+    Replay from it equals replay from the JSON, row for row and command for command, with a config change
+    mid-run; a file cut short (no summary to count against) is read from the JSON instead."""
+    import threading
+
+    import numpy as np
+
+    from clients import replay as rp
+    from clients.bench_tick import _trace, drive_daemon
+
+    scn, tr = _trace(str(SCENARIOS / "paper-varying-load.toml"), 3000)
+    faster = scn.controller.model_copy(update={"K_per_s": 900.0})
+
+    def set_gain(d):  # what the loop does with a validated config set, between two ticks
+        d._pending = (faster, threading.Event(), faster.model_dump_json())
+        d._apply_pending()
+
+    _t, st = drive_daemon(scn, tr, str(tmp_path), hooks={1200: set_gain})
+    log = st["log_path"]
+    by_index, by_json = rp.collect([log]), rp.collect([log], use_index=False)
+    assert by_index.sources == ["index"] and by_json.sources == ["json"]
+    assert np.array_equal(by_index.keys, by_json.keys) and len(by_index.keys) == 3000
+    assert np.array_equal(by_index.rows[:, :9], by_json.rows[:, :9])
+    assert np.array_equal(by_index.logged, by_json.logged) and by_json.has_cmd.all()
+    a, b = rp.replay(log, progress=False), rp.replay(log, progress=False, use_index=False)
+    assert a["identical"] and b["identical"] and a["compared"] == b["compared"] == 3000
+    assert a["read_from"] == "index" and b["read_from"] == "json"
+    # the gain change was applied from its event on both paths: without it, replay diverges after tick 1200
+    assert len(by_index.cfg_events) == 1
+
+    cut = tmp_path / "cut.mcap"
+    data = open(log, "rb").read()
+    cut.write_bytes(data[:int(len(data) * 0.7)])
+    part = rp.collect([cut])
+    assert part.sources == ["json"] and 0 < len(part.keys) < 3000
+    assert np.array_equal(part.rows[:, :9], by_json.rows[:len(part.keys), :9])
