@@ -112,6 +112,16 @@ def test_logs_open_in_the_typescript_mcap_reader(tmp_path):
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert got["messages"] == 5 * 200 and got["streamDone"] and got["schemaEncodings"] == ["jsonschema"]
     assert "core" in got["metadata"] and got["sample"]["seq"] == 0
+    # a daemon log, with its tick-index attachments: still a valid file for the other reader
+    from clients.bench_tick import _trace, drive_daemon
+
+    scn, tr = _trace(str(SCENARIOS / "paper-varying-load.toml"), 1000)
+    _t, st = drive_daemon(scn, tr, str(tmp_path))
+    out = subprocess.run([node, str(js / "check_mcap.mjs"), st["log_path"]], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["streamDone"] and got["counts"]["energyctl/source/meas"] == 1000 and "tick_index" in got["metadata"]
 
 
 def test_foxglove_layout_plots_only_channels_the_daemon_writes(tmp_path):
