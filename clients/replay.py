@@ -11,10 +11,12 @@ ticks are keyed by (epoch, seq) and the core is re-initialised at each new epoch
 Epochs come from the measurement stream, which the recorder writes in tick order; events travel on a
 side queue and are written when the ring is idle, so their place in the file is not their place in time.
 
-Speed: the log is read into arrays (clients/_mcapscan.c parses the recorder's flat JSON without a Python
-object per message; without it, mcap + json do the same, slower), and the core steps each stretch between
-config changes and restarts in one call (the compiled core's loop runs in C). Both fast paths give the
-same doubles as the general ones; the comparison with the logged commands is still ``==``.
+Speed: a daemon log's tick index (service.shmlog.TickIndex: one row of doubles per tick in zstd attachments,
+used only when it accounts for every tick) is read without touching the JSON chunks; otherwise the log is
+read into arrays (clients/_mcapscan.c parses the recorder's flat JSON without a Python object per message;
+without it, mcap + json do the same, slower). The core steps each stretch between config changes and
+restarts in one call (the compiled core's loop runs in C). Every fast path gives the same doubles as the
+general one; the comparison with the logged commands is still ``==``.
 """
 
 from __future__ import annotations
@@ -180,12 +182,12 @@ def _channel_messages(data: bytes, cids: set[int]) -> list[bytes]:
     return out
 
 
-def _read_fast(path: str | Path) -> LogData:
+def _read_fast(path: str | Path, data=None) -> LogData:
     out = LogData()
     table = bytearray(b"\xff" * 65536)
     events_ids: set[int] = set()
     keys = tuple(tuple(("" if k in NEEDED[c] else "~").encode() + k.encode() for k in ks) for c, ks in enumerate(KEYS))
-    data = _read_bytes(path)
+    data = _read_bytes(path) if data is None else data
     out.core = _core_meta(data)
     for recs in _records(path, data):  # the top level first, then each chunk
         for cid, topic in _mcapscan.channels(recs):
@@ -201,8 +203,8 @@ def _read_fast(path: str | Path) -> LogData:
     return out
 
 
-def _read_general(path: str | Path) -> LogData:
-    out = LogData(core=_core_meta(_read_bytes(path)))
+def _read_general(path: str | Path, data=None) -> LogData:
+    out = LogData(core=_core_meta(_read_bytes(path) if data is None else data))
     rows: list[list[float]] = []
     topics: dict[int, str] = {}
     with open(path, "rb") as f:
@@ -283,10 +285,10 @@ def read_log(path: str | Path, use_index: bool = True) -> LogData:
         return got
     if _mcapscan is not None:
         try:
-            return _read_fast(path)
+            return _read_fast(path, data)
         except ValueError:
             pass  # not our templates (hand-made or foreign log): the general reader copes
-    return _read_general(path)
+    return _read_general(path, data)
 
 
 @dataclass
