@@ -210,7 +210,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     mode = "offline" if args.offline else "realtime" if args.realtime else "lockstep"
     if args.secure and args.offline:
         raise ScenarioError("demo: --secure needs Zenoh (not --offline)")
+    if args.tls and not args.secure:
+        raise ScenarioError("demo: --tls goes with --secure")
     mode += ", secure profile: router with authentication and access control" if args.secure else ""
+    mode += ", mutual TLS" if args.tls else ""
     rate = args.rate or (scn.timing.control_rate_hz if mode != "realtime" else DEMO_REALTIME_HZ)
     print(f"energyctl {__version__} demo ({mode}, {rate:g} Hz): {scn.description}", flush=True)
     t0 = time.perf_counter()
@@ -224,7 +227,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         from .live import run_live
 
         logs.mkdir(parents=True, exist_ok=True)
-        res = run_live(scn, not args.realtime, rate, str(out), args.duration, args.delay, secure=args.secure)
+        res = run_live(scn, not args.realtime, rate, str(out), args.duration, args.delay, secure=args.secure,
+                       tls=args.tls)
         m = res["metrics"]
         print(metrics_table([([scn.name, f"{scn.controller.kind} over Zenoh"], m)], ["scenario", "controller"]))
         d = res.get("daemon", {}).get("loop", {})
@@ -375,10 +379,13 @@ def cmd_secure_profile(args: argparse.Namespace) -> int:
             raise ScenarioError(f"--plant: expected USER=CONTROLLER_ID, got {bad}")
         plants = dict(p.split("=", 1) for p in args.plant)
     paths = write_profile(args.out, args.prefix, args.controller, plants, args.load, args.operator, args.monitor,
-                          args.listen)
-    users = [u for u in paths if u not in ("router", "credentials")]
+                          args.listen, tls=args.tls)
+    users = [u for u in paths if u not in ("router", "credentials", "tls")]
     print(f"wrote {paths['router']} (access control, default deny) and {paths['credentials']}")
     print(f"password files (mode 600) for: {', '.join(users)} in {Path(args.out)}")
+    if args.tls:
+        print(f"mutual TLS: CA, router and per-user certificates and keys (mode 600) in {paths['tls']}; a client "
+              "sets zenoh.tls_root_ca, tls_certificate and tls_private_key and connects to tls/HOST:PORT")
     print(f"start the router:  energyctl router --config {paths['router']}")
     return 0
 
@@ -578,6 +585,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--offline", action="store_true", help="no Zenoh: the offline closed loop of energyctl sim")
     d.add_argument("--secure", action="store_true", help="through a router with user/password authentication and "
                                                          "the access-control profile (energyctl secure-profile)")
+    d.add_argument("--tls", action="store_true", help="with --secure: over mutual TLS (certificates per identity)")
     d.add_argument("--rate", type=float, help=f"control/sample rate, Hz (realtime default {DEMO_REALTIME_HZ:g})")
     d.add_argument("--duration", type=float, help="seconds to run (default: the scenario's)")
     d.add_argument("--delay", type=int, help="realtime: samples between a measurement and the instant its command "
@@ -668,6 +676,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp_.add_argument("--operator", action="append", metavar="USER", help="may set config (default: operator)")
     sp_.add_argument("--monitor", action="append", metavar="USER", help="may only read (default: monitor)")
     sp_.add_argument("--listen", action="append", metavar="ENDPOINT", help="default: tcp/127.0.0.1:7447")
+    sp_.add_argument("--tls", action="store_true",
+                     help="mutual TLS on tls/ endpoints: also writes DIR/tls/ (a private CA, the router's and one "
+                          "certificate per user, via the openssl command); credentials then cross the wire encrypted")
     sp_.set_defaults(func=cmd_secure_profile)
 
     rp = sub.add_parser("replay", help="re-run a log's inputs through the core; 'identical' or the first divergence",

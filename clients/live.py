@@ -241,11 +241,12 @@ def _exit_on_term(signum, frame):
 
 def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | None, duration_s: float | None,
              controller_delay: int | None = None, workdir: str | None = None, timeout_s: float = 300.0,
-             secure: bool = False) -> dict:
+             secure: bool = False, tls: bool = False) -> dict:
     """Start controller, load and plant on a free loopback port; wait for the plant; stop the rest.
 
     ``secure``: the three connect as Zenoh clients, each with its own credentials, to a router that
-    enforces the secure profile (``clients.secure``), written to the work directory first."""
+    enforces the secure profile (``clients.secure``), written to the work directory first; ``tls``: over
+    mutual TLS, each also with its own certificate."""
     from service.bus import free_tcp_port
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
@@ -255,9 +256,9 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
         from .secure import client_zenoh, write_profile
 
         creds = write_profile(tmp / "secure", controllers=["source"], plants={"plant": "source"}, loads=["load"],
-                              listen=[ep])
+                              listen=[ep], tls=tls)
         for d in (comp, plant, load):
-            d["zenoh"] = client_zenoh(ep, d["id"], creds[d["id"]])
+            d["zenoh"] = client_zenoh(ep, d["id"], creds[d["id"]], creds.get("tls"))
     paths = {}
     for name, d in (("component", comp), ("plant", plant), ("load", load)):
         paths[name] = tmp / f"{name}.toml"

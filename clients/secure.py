@@ -15,6 +15,13 @@ router to that client). Roles, each a Zenoh user whose name is its identity:
 
 Everyone may watch liveliness tokens. A client without credentials, or with wrong ones, is refused at
 connect; a message the ACL denies is dropped by the router (the sender sees no error).
+
+With ``tls=True`` the router listens on ``tls/`` endpoints with mutual TLS: a private CA (made here with the
+``openssl`` command) signs the router's certificate and one client certificate per user whose common name
+is the user name. A client must then present a certificate of that CA (else the handshake fails) and the
+password; each ACL subject names both the user name and the certificate's common name, so a session
+counts as an identity only with that identity's password and certificate. The credentials cross the wire
+encrypted.
 """
 
 from __future__ import annotations
@@ -95,9 +102,64 @@ def access_control(prefix: str, controllers: list[str], plants: dict[str, str], 
             "policies": policies}
 
 
-def router_config(listen: list[str], acl: dict, dictionary_file: str = CREDENTIALS_FILE) -> dict:
+def router_config(listen: list[str], acl: dict, dictionary_file: str = CREDENTIALS_FILE, tls: bool = False) -> dict:
+    transport: dict = {"auth": {"usrpwd": {"dictionary_file": dictionary_file}}}
+    if tls:  # paths relative to the profile directory (energyctl resolves them; zenohd: run it from there)
+        transport["link"] = {"tls": {"listen_certificate": f"{TLS_DIR}/router.pem",
+                                     "listen_private_key": f"{TLS_DIR}/router.key",
+                                     "root_ca_certificate": f"{TLS_DIR}/ca.pem", "enable_mtls": True}}
+        listen = [tls_endpoint(e) for e in listen]
     return {"mode": "router", "listen": {"endpoints": listen}, "scouting": {"multicast": {"enabled": False}},
-            "transport": {"auth": {"usrpwd": {"dictionary_file": dictionary_file}}}, "access_control": acl}
+            "transport": transport, "access_control": acl}
+
+
+TLS_DIR = "tls"
+
+
+def tls_endpoint(endpoint: str) -> str:
+    """tcp/HOST:PORT -> tls/HOST:PORT (the same address over TLS)."""
+    proto, _, addr = endpoint.partition("/")
+    if proto not in ("tcp", "tls"):
+        raise ScenarioError(f"secure profile: TLS needs a tcp/ or tls/ endpoint, not {endpoint!r}")
+    return f"tls/{addr}"
+
+
+def _openssl(*args: str) -> None:
+    import shutil
+    import subprocess
+
+    if shutil.which("openssl") is None:
+        raise ScenarioError("secure profile with TLS: the 'openssl' command is needed to make the certificates")
+    r = subprocess.run(["openssl", *args], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise ScenarioError(f"openssl {args[0]} failed: {r.stderr.strip()[-400:]}")
+
+
+def write_certificates(out: Path, users: list[str], hosts: list[str]) -> None:
+    """A private CA (kept if present), the router's certificate for ``hosts`` and one client certificate per
+    user (common name = user). Keys are EC P-256, mode 600. Existing certificates are kept."""
+    d = out / TLS_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    ca, ca_key = d / "ca.pem", d / "ca.key"
+    if not ca.exists():
+        _openssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-keyout",
+                 str(ca_key), "-out", str(ca), "-days", "3650", "-subj", "/CN=energyctl-ca")
+    san = ",".join(f"IP:{h}" if h.replace(".", "").isdigit() or ":" in h else f"DNS:{h}" for h in hosts)
+    for name in ["router", *users]:
+        pem, key = d / f"{name}.pem", d / f"{name}.key"
+        if pem.exists() and key.exists():
+            continue
+        csr, ext = d / f"{name}.csr", d / f"{name}.ext"
+        _openssl("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-keyout", str(key),
+                 "-out", str(csr), "-subj", f"/CN={name}")
+        ext.write_text((f"subjectAltName={san}\n" if name == "router" else "")
+                       + "extendedKeyUsage=serverAuth,clientAuth\nbasicConstraints=CA:FALSE\n")
+        _openssl("x509", "-req", "-in", str(csr), "-CA", str(ca), "-CAkey", str(ca_key), "-CAcreateserial",
+                 "-out", str(pem), "-days", "3650", "-extfile", str(ext))
+        csr.unlink()
+        ext.unlink()
+    for key in d.glob("*.key"):
+        key.chmod(0o600)
 
 
 def _write_private(path: Path, text: str) -> None:
@@ -121,11 +183,12 @@ def _read_credentials(path: Path) -> dict[str, str]:
 def write_profile(out_dir: str | Path, prefix: str = "energyctl", controllers: list[str] | None = None,
                   plants: dict[str, str] | None = None, loads: list[str] | None = None,
                   operators: list[str] | None = None, monitors: list[str] | None = None,
-                  listen: list[str] | None = None) -> dict[str, Path]:
-    """Write ``router.json5``, ``credentials.txt`` and one ``<user>.password`` per user (mode 600).
+                  listen: list[str] | None = None, tls: bool = False) -> dict[str, Path]:
+    """Write ``router.json5``, ``credentials.txt`` and one ``<user>.password`` per user (mode 600); with tls,
+    also ``tls/`` (CA, router and per-user certificates and keys).
 
-    Existing passwords in ``credentials.txt`` are kept (regenerating the profile never locks anyone
-    out); users without one get a new random password."""
+    Existing passwords and certificates are kept (regenerating the profile never locks anyone out); users
+    without them get new ones."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     controllers = controllers or ["source"]
@@ -141,7 +204,11 @@ def write_profile(out_dir: str | Path, prefix: str = "energyctl", controllers: l
         if c not in controllers:
             raise ScenarioError(f"secure profile: plant serves controller {c!r}, which is not a --controller")
     acl = access_control(prefix, controllers, plants, loads, operators, monitors)
-    cfg = router_config(listen or ["tcp/127.0.0.1:7447"], acl)
+    if tls:  # an identity is its user name and its certificate's common name, both
+        for sub in acl["subjects"]:
+            sub["cert_common_names"] = list(sub["usernames"])
+    listen = listen or ["tcp/127.0.0.1:7447"]
+    cfg = router_config(listen, acl, tls=tls)
     router = out / ROUTER_FILE
     router.write_text("// energyctl secure profile (energyctl secure-profile); Zenoh JSON5, also for zenohd -c\n"
                       "// (zenohd reads dictionary_file from its working directory, energyctl router from here)\n"
@@ -155,12 +222,21 @@ def write_profile(out_dir: str | Path, prefix: str = "energyctl", controllers: l
     for u in users:
         paths[u] = out / f"{u}.password"
         _write_private(paths[u], creds[u] + "\n")
+    if tls:
+        write_certificates(out, users, sorted({e.partition("/")[2].rpartition(":")[0].strip("[]") for e in listen}))
+        paths["tls"] = out / TLS_DIR
     return paths
 
 
-def client_zenoh(endpoint: str, user: str, password_file: str | Path) -> dict:
-    """The ``[zenoh]`` table of a component, plant or load that connects to the secure router."""
-    return {"mode": "client", "connect": [endpoint], "user": user, "password_file": str(password_file)}
+def client_zenoh(endpoint: str, user: str, password_file: str | Path, tls_dir: str | Path | None = None) -> dict:
+    """The ``[zenoh]`` table of a component, plant or load that connects to the secure router (over mutual
+    TLS when tls_dir, the profile's ``tls/`` directory, is given)."""
+    z = {"mode": "client", "connect": [endpoint], "user": user, "password_file": str(password_file)}
+    if tls_dir is not None:
+        d = Path(tls_dir)
+        z.update(connect=[tls_endpoint(endpoint)], tls_root_ca=str(d / "ca.pem"),
+                 tls_certificate=str(d / f"{user}.pem"), tls_private_key=str(d / f"{user}.key"))
+    return z
 
 
 def run_router(config_file: str | None, listen: list[str], ready: threading.Event | None = None,

@@ -39,10 +39,19 @@ class ZenohConfig(Strict):
     password_file: str | None = Field(default=None, description="file holding the password (first line); relative "
                                                                 "paths are taken from the config file's directory")
 
+    tls_root_ca: str | None = Field(default=None, description="TLS (tls/ endpoints): the CA certificate that signed "
+                                                             "the router's certificate (PEM file)")
+    tls_certificate: str | None = Field(default=None, description="mutual TLS: this session's certificate (PEM), "
+                                                                 "its common name the identity in the router's ACL")
+    tls_private_key: str | None = Field(default=None, description="mutual TLS: its private key (PEM file, not "
+                                                                 "readable by group or others)")
+
     @model_validator(mode="after")
     def _credentials(self):
         if (self.user is None) != (self.password_file is None):
             raise ValueError("zenoh.user and zenoh.password_file go together")
+        if (self.tls_certificate is None) != (self.tls_private_key is None):
+            raise ValueError("zenoh.tls_certificate and zenoh.tls_private_key go together")
         return self
 
 
@@ -175,7 +184,7 @@ def _read_toml(p: Path, kind: type[BaseModel], seen: list[Path]) -> dict:
         data.setdefault("base_dir", str(p.parent.resolve()))
     z = data.get("zenoh")
     if isinstance(z, dict):  # Zenoh file paths in a config file are relative to that file
-        for f in ("password_file", "config_file"):
+        for f in ("password_file", "config_file", "tls_root_ca", "tls_certificate", "tls_private_key"):
             if isinstance(z.get(f), str) and not Path(z[f]).is_absolute():
                 z[f] = str((p.parent / z[f]).resolve())
     base = data.pop("extends", None)

@@ -33,11 +33,12 @@ def key(prefix: str, component_id: str, leaf: str) -> str:
 
 def zenoh_config(z: ZenohConfig) -> zenoh.Config:
     cfg = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
-    if z.config_file:  # a relative credentials dictionary is taken from the config file's directory
-        d = json.loads(cfg.get_json("transport/auth/usrpwd/dictionary_file") or "null")
-        if isinstance(d, str) and not os.path.isabs(d):
-            path = os.path.join(os.path.dirname(os.path.abspath(z.config_file)), d)
-            cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(path))
+    if z.config_file:  # relative files named in it (credentials, TLS) are taken from its directory
+        for k in CONFIG_FILE_PATHS:
+            d = json.loads(cfg.get_json(k) or "null")
+            if isinstance(d, str) and not os.path.isabs(d):
+                path = os.path.join(os.path.dirname(os.path.abspath(z.config_file)), d)
+                cfg.insert_json5(k, json.dumps(path))
     if not z.config_file or z.mode != "peer":
         cfg.insert_json5("mode", json.dumps(z.mode))
     if z.listen:
@@ -49,22 +50,47 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
     if z.user is not None:
         auth = {"user": z.user, "password": read_password(z.password_file)}
         cfg.insert_json5("transport/auth/usrpwd", json.dumps(auth))
+    tls = {}
+    if z.tls_root_ca is not None:
+        tls["root_ca_certificate"] = _readable(z.tls_root_ca, "zenoh.tls_root_ca")
+    if z.tls_certificate is not None:
+        read_private(z.tls_private_key, "zenoh.tls_private_key", first_line=False)
+        tls.update(connect_certificate=_readable(z.tls_certificate, "zenoh.tls_certificate"),
+                   connect_private_key=z.tls_private_key, enable_mtls=True)
+    for k, v in tls.items():
+        cfg.insert_json5(f"transport/link/tls/{k}", json.dumps(v))
     return cfg
 
 
-def read_password(path: str) -> str:
-    """The first line of a password file; refuses a file others can read (as ssh refuses a private key)."""
+CONFIG_FILE_PATHS = ["transport/auth/usrpwd/dictionary_file"] + [
+    f"transport/link/tls/{k}" for k in ("root_ca_certificate", "listen_private_key", "listen_certificate",
+                                        "connect_private_key", "connect_certificate")]
+
+
+def _readable(path: str, field: str) -> str:
+    if not os.access(path, os.R_OK):
+        raise ScenarioError(f"{field}: cannot read {path}")
+    return path
+
+
+def read_private(path: str, field: str, first_line: bool = True) -> str:
+    """A secret file's first line (or all of it); refuses a file others can read (as ssh refuses a key)."""
     try:
         st = os.stat(path)
         with open(path, encoding="utf-8") as f:
-            pw = f.readline().rstrip("\r\n")
+            text = f.readline().rstrip("\r\n") if first_line else f.read()
     except OSError as e:
-        raise ScenarioError(f"zenoh.password_file: cannot read {path}: {e.strerror}") from None
+        raise ScenarioError(f"{field}: cannot read {path}: {e.strerror}") from None
     if st.st_mode & 0o077:
-        raise ScenarioError(f"zenoh.password_file: {path} is readable by group or others (chmod 600 it)")
-    if not pw:
-        raise ScenarioError(f"zenoh.password_file: {path} is empty")
-    return pw
+        raise ScenarioError(f"{field}: {path} is readable by group or others (chmod 600 it)")
+    if not text.strip():
+        raise ScenarioError(f"{field}: {path} is empty")
+    return text
+
+
+def read_password(path: str) -> str:
+    """The first line of a password file; refuses a file others can read."""
+    return read_private(path, "zenoh.password_file")
 
 
 def open_session(z: ZenohConfig) -> zenoh.Session:

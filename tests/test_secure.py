@@ -10,7 +10,7 @@ from conftest import ROOT, SCENARIOS
 
 from clients.live import run_live, wait_until
 from clients.query import QueryError, query
-from clients.secure import ROUTER_FILE, run_router, write_profile
+from clients.secure import ROUTER_FILE, run_router, tls_endpoint, write_profile
 from schemas.codec import CMD, MEAS
 from schemas.component import ComponentConfig, ZenohConfig, config_from_dict
 from schemas.scenario import ScenarioError, load_scenario
@@ -20,11 +20,12 @@ from service.daemon import Daemon
 P = "energyctl"
 
 
-@pytest.fixture
-def secure(tmp_path):
-    """A router enforcing a freshly written profile; yields (endpoint, {user: password file})."""
+@pytest.fixture(params=["tcp", "tls"])
+def secure(tmp_path, request):
+    """A router enforcing a freshly written profile, over TCP or mutual TLS; yields (endpoint, paths: {user:
+    password file, "tls": the certificates' directory when TLS})."""
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    paths = write_profile(tmp_path / "secure", listen=[ep])
+    paths = write_profile(tmp_path / "secure", listen=[ep], tls=request.param == "tls")
     ready, stop = threading.Event(), threading.Event()
     t = threading.Thread(target=run_router, args=(str(paths["router"]), [], ready, stop), daemon=True)
     t.start()
@@ -37,13 +38,22 @@ def secure(tmp_path):
 
 
 def login(ep: str, paths, user: str, password_file=None) -> zenoh.Session:
-    return open_session(client(ep, user, password_file or paths[user]))
+    return open_session(client(ep, user, password_file or paths[user], paths))
 
 
-def client(ep: str, user: str | None, password_file=None) -> ZenohConfig:
-    if user is None:
-        return ZenohConfig(mode="client", connect=[ep])
-    return ZenohConfig(mode="client", connect=[ep], user=user, password_file=str(password_file))
+def client(ep: str, user: str | None, password_file=None, paths=None, cert_of: str | None = None) -> ZenohConfig:
+    """A client config; under TLS (paths has "tls") with the certificate of cert_of (default: user's own; a user
+    that does not exist: none, only the CA)."""
+    tls = (paths or {}).get("tls")
+    z = {"mode": "client", "connect": [ep]}
+    if user is not None:
+        z.update(user=user, password_file=str(password_file))
+    if tls is not None:
+        z.update(connect=[tls_endpoint(ep)], tls_root_ca=str(tls / "ca.pem"))
+        who = cert_of or user
+        if who is not None and (tls / f"{who}.pem").exists():
+            z.update(tls_certificate=str(tls / f"{who}.pem"), tls_private_key=str(tls / f"{who}.key"))
+    return ZenohConfig(**z)
 
 
 def round_trip(session: zenoh.Session) -> None:
@@ -57,18 +67,19 @@ def test_no_or_wrong_credentials_are_refused_at_connect(secure, tmp_path):
     wrong = tmp_path / "wrong.password"
     wrong.write_text("not-the-password\n")
     wrong.chmod(0o600)
-    for z in (client(ep, None), client(ep, "operator", wrong), client(ep, "mallory", wrong)):
+    for z in (client(ep, None, paths=paths), client(ep, "operator", wrong, paths),
+              client(ep, "mallory", wrong, paths)):
         with pytest.raises(ConnectionError, match="cannot open a Zenoh client session"):
             open_session(z)
     # nor can such a client change a gain through the CLI path
     with pytest.raises(ConnectionError):
-        query(client(ep, "operator", wrong), P, "source", "config", sets=["controller.K_per_s=1"])
+        query(client(ep, "operator", wrong, paths), P, "source", "config", sets=["controller.K_per_s=1"])
     # a password file others may read is refused before connecting
     loose = tmp_path / "loose.password"
     loose.write_text(paths["operator"].read_text())
     loose.chmod(0o644)
     with pytest.raises(ScenarioError, match="readable by group or others"):
-        open_session(client(ep, "operator", loose))
+        open_session(client(ep, "operator", loose, paths))
 
 
 def test_only_the_controller_commands_and_only_the_plant_measures(secure):
@@ -105,19 +116,24 @@ def test_only_the_controller_commands_and_only_the_plant_measures(secure):
 def test_only_an_operator_sets_config(secure, tmp_path):
     ep, paths = secure
     comp = {"id": "source", "plant_id": "source", "neighbours": [], "loop": {"trigger": "sample", "rate_hz": 1000.0},
-            "zenoh": client(ep, "source", paths["source"]).model_dump()}
+            "zenoh": client(ep, "source", paths["source"], paths).model_dump()}
     d = Daemon(config_from_dict(ComponentConfig, comp))
     d.open()
     loop = threading.Thread(target=d.run_loop, daemon=True)
     loop.start()
     try:
-        op = client(ep, "operator", paths["operator"])
-        mon = client(ep, "monitor", paths["monitor"])
+        op = client(ep, "operator", paths["operator"], paths)
+        mon = client(ep, "monitor", paths["monitor"], paths)
         assert query(op, P, "source", "config", sets=["controller.K_per_s=900"], timeout_s=5.0)["applied"]
         assert d.core.cfg.K_per_s == 900.0
         for who in ("monitor", "load", "plant"):
             with pytest.raises(QueryError, match="no answer"):
-                query(client(ep, who, paths[who]), P, "source", "config", sets=["controller.K_per_s=1"], timeout_s=0.5)
+                query(client(ep, who, paths[who], paths), P, "source", "config", sets=["controller.K_per_s=1"],
+                      timeout_s=0.5)
+        if "tls" in paths:  # the operator's password with the monitor's certificate is neither identity
+            with pytest.raises((QueryError, ConnectionError)):
+                query(client(ep, "operator", paths["operator"], paths, cert_of="monitor"), P, "source", "config",
+                      sets=["controller.K_per_s=1"], timeout_s=0.5)
         # the read-only key refuses a set smuggled in as a parameter, naming where sets go
         s = open_session(mon)
         try:
@@ -135,11 +151,13 @@ def test_only_an_operator_sets_config(secure, tmp_path):
         d.close()
 
 
-def test_the_whole_stack_runs_under_the_secure_profile(tmp_path):
-    """Plant, load and controller as three authenticated clients of the ACL router: lockstep completes,
-    so every message kind they need is allowed."""
+@pytest.mark.parametrize("tls", [False, True])
+def test_the_whole_stack_runs_under_the_secure_profile(tmp_path, tls):
+    """Plant, load and controller as three authenticated clients of the ACL router (with tls: each also with
+    its own certificate, over mutual TLS): lockstep completes, so every message kind they need is allowed."""
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml", ["timing.duration_s=0.03"])
-    res = run_live(scn, lockstep=True, rate_hz=None, out=None, duration_s=None, workdir=str(tmp_path), secure=True)
+    res = run_live(scn, lockstep=True, rate_hz=None, out=None, duration_s=None, workdir=str(tmp_path), secure=True,
+                   tls=tls)
     assert res["counters"]["commands"] == 300 and res["counters"]["timeouts"] == 0
     assert res["daemon"]["neighbours"]["load"]["messages"] > 0
 
@@ -165,3 +183,28 @@ def test_the_shipped_secure_configs_extend_the_live_ones(tmp_path):
     (tmp_path / "b.toml").write_text('extends = "a.toml"\n')
     with pytest.raises(ScenarioError, match="loops back"):
         load_config(ComponentConfig, tmp_path / "a.toml")
+
+
+def test_mutual_tls_refuses_a_certificate_from_another_ca(secure, tmp_path):
+    """Under TLS a client needs a certificate signed by the profile's CA: its own CA's, however named, fails the
+    handshake even with the right password."""
+    import subprocess
+
+    ep, paths = secure
+    if "tls" not in paths:
+        pytest.skip("TLS only")
+    key, pem = tmp_path / "evil.key", tmp_path / "evil.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes",
+                    "-keyout", str(key), "-out", str(pem), "-days", "2", "-subj", "/CN=operator"],
+                   check=True, capture_output=True)
+    key.chmod(0o600)
+    z = client(ep, "operator", paths["operator"], paths).model_copy(
+        update={"tls_certificate": str(pem), "tls_private_key": str(key)})
+    with pytest.raises(ConnectionError):
+        open_session(z)
+    loose = tmp_path / "loose.key"  # and a private key others may read is refused before connecting
+    loose.write_text((paths["tls"] / "operator.key").read_text())
+    loose.chmod(0o644)
+    with pytest.raises(ScenarioError, match="readable by group or others"):
+        open_session(client(ep, "operator", paths["operator"], paths).model_copy(
+            update={"tls_private_key": str(loose)}))
