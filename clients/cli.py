@@ -476,7 +476,8 @@ def cmd_log(args: argparse.Namespace) -> int:
             else:
                 state = "complete" if res["complete"] else f"TRUNCATED ({res['truncated_at']})"
                 print(f"{res['path']}: {state}, {res['messages']} messages over {res['duration_s']:.3f} s, "
-                      f"recorder drops {sum(res['drops'].values()) if res['drops'] else 0}")
+                      f"recorder drops {sum(res['drops'].values()) if res['drops'] else 0}"
+                      + "".join(f", {n} attachment(s) {name}" for name, n in res["attachments"].items()))
                 print(render(["channel", "messages", "bytes"],
                              [[t, str(c["messages"]), str(c["bytes"])] for t, c in res["channels"].items()]))
                 for name in ("config", "scenario", "core", "build"):
@@ -721,14 +722,15 @@ def main(argv: list[str] | None = None) -> int:
     except ScenarioError as e:
         print(f"energyctl: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # e.g. piped into head (a ConnectionError subclass: caught first); quiet at exit too
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except ConnectionError as e:
         print(f"energyctl: {e}", file=sys.stderr)
         return 3
     except KeyboardInterrupt:
         print("energyctl: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # e.g. piped into head
-        return 0
 
 
 if __name__ == "__main__":

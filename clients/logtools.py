@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -21,6 +21,7 @@ def scan(path: str | Path, keep_messages: bool = False) -> dict:
     nbytes: dict[str, int] = {}
     metadata: dict[str, dict] = {}
     messages: list[Message] = []
+    attachments: list[Attachment] = []
     drops: dict = {}
     t_first = t_last = None
     complete = False
@@ -46,12 +47,15 @@ def scan(path: str | Path, keep_messages: bool = False) -> dict:
                         messages.append(rec)
                 elif isinstance(rec, Metadata):
                     metadata[rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Attachment):
+                    attachments.append(rec)
                 elif isinstance(rec, Footer):
                     complete = True
         except Exception as e:  # noqa: BLE001 - a truncated file ends in a partial record
             error = f"{type(e).__name__}: {e}"
     return {"path": str(path), "complete": complete, "error": error, "schemas": schemas, "channels": channels,
             "counts": counts, "bytes": nbytes, "metadata": metadata, "drops": drops, "messages": messages,
+            "attachments": attachments,
             "duration_s": (t_last - t_first) / 1e9 if t_first is not None else 0.0}
 
 
@@ -59,7 +63,8 @@ def info(path: str | Path) -> dict:
     s = scan(path)
     out = {"path": s["path"], "complete": s["complete"], "truncated_at": s["error"], "duration_s": s["duration_s"],
            "channels": {t: {"messages": n, "bytes": s["bytes"][t]} for t, n in sorted(s["counts"].items())},
-           "messages": sum(s["counts"].values()), "drops": s["drops"]}
+           "messages": sum(s["counts"].values()), "drops": s["drops"],
+           "attachments": {a.name: sum(1 for b in s["attachments"] if b.name == a.name) for a in s["attachments"]}}
     for name in ("config", "core", "scenario", "build", "metrics"):
         if name in s["metadata"]:
             m = s["metadata"][name]
@@ -105,5 +110,7 @@ def recover(broken: str | Path, fixed: str | Path) -> dict:
                                      "truncated_at": str(s["error"])})
         for m in s["messages"]:
             w.add_message(cid[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
+        for a in s["attachments"]:  # e.g. the tick index: replay uses it only if it covers every tick
+            w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
         w.finish()
     return {"from": str(broken), "to": str(fixed), "messages": len(s["messages"]), "was_complete": s["complete"]}

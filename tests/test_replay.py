@@ -261,6 +261,13 @@ def test_tick_index_gives_the_json_channels_inputs_and_is_used_only_when_complet
     # the gain change was applied from its event on both paths: without it, replay diverges after tick 1200
     assert len(by_index.cfg_events) == 1
 
+    from clients.logtools import recover
+
+    fixed = tmp_path / "rewritten.mcap"  # log recover keeps the index: still used, still identical
+    recover(log, fixed)
+    r = rp.replay(fixed, progress=False)
+    assert r["read_from"] == "index" and r["identical"] and r["compared"] == 3000
+
     cut = tmp_path / "cut.mcap"
     data = open(log, "rb").read()
     cut.write_bytes(data[:int(len(data) * 0.7)])
