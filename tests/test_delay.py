@@ -61,3 +61,7 @@ def test_daemon_status_flags_a_delay_it_does_not_compensate(daemon_by_hand):
     ld = d.status()["loop_delay"]
     assert ld["measured_samples"] == 3 and ld["compensated_samples"] == 1 and ld["mismatch"]
     assert ld["window"] == 1500
+    # a status query soon after reuses the estimate (it costs the loop ~0.4 ms of GIL); after shutdown it is fresh
+    assert d.status()["loop_delay"] is ld
+    d.state = "shutdown"
+    assert d.status()["loop_delay"] is not ld
