@@ -283,7 +283,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "tick":
         from .bench_tick import bench_tick
 
-        res = bench_tick(args.scenario or str(EMBEDDED / "demo.toml"), n=args.n if args.n != 3000 else 20_000)
+        res = bench_tick(args.scenario or str(EMBEDDED / "demo.toml"), n=args.n or 20_000)
     elif args.what == "replay":
         from .bench_tick import bench_replay
 
@@ -296,7 +296,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "latency":
         from .bench_latency import bench_latency
 
-        res = bench_latency(n=args.n, wait=args.wait)
+        res = bench_latency(n=args.n or 3000, wait=args.wait)
     else:
         res = _bench_core(args)
     print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
@@ -606,8 +606,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
     b.add_argument("--seconds", type=float, default=10.0,
                    help="recorder: paced run length; replay: log length (default %(default)s)")
-    b.add_argument("-n", type=int, default=3000,
-                   help="latency: round trips per target (default %(default)s); tick: ticks (default 20000)")
+    b.add_argument("-n", type=int, default=None,
+                   help="latency: round trips per target (default 3000); tick: ticks (default 20000)")
     b.add_argument("--wait", choices=["block", "spin"], default="block", help="latency: daemon wait strategy")
     b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
     scen_opts(b)
