@@ -279,15 +279,27 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "recorder":
         from .bench_recorder import bench_recorder
 
-        res = bench_recorder(seconds=args.seconds)
+        res = bench_recorder(seconds=args.seconds or 10.0)
     elif args.what == "tick":
         from .bench_tick import bench_tick
 
         res = bench_tick(args.scenario or str(EMBEDDED / "demo.toml"), n=args.n or 20_000)
+    elif args.what == "realtime":
+        from .bench_realtime import bench_realtime
+
+        scn = _load(args.scenario or str(EMBEDDED / "demo.toml"), list(args.set or []))
+        rates = [float(r) for r in (args.rates or "1000,2000,5000,10000").split(",")]
+        delays = [int(x) for x in (args.delays or "1,2,3").split(",")]
+        res = bench_realtime(scn, rates, delays, args.seconds or 2.0,
+                             progress=lambda r: print(f"  {r['rate_hz']:g} Hz, delay {r['delay_samples']}: "
+                                                      f"{'OK' if r['ok'] else 'no'} (dev {r['v_dev_after_50ms_pct']}, "
+                                                      f"overruns {r['overrun_pct']:.2f} %, missed/late "
+                                                      f"{r['missed_or_late_pct']:.2f} %)", file=sys.stderr,
+                                                      flush=True))
     elif args.what == "replay":
         from .bench_tick import bench_replay
 
-        res = bench_replay(args.scenario or str(EMBEDDED / "demo.toml"), seconds=args.seconds)
+        res = bench_replay(args.scenario or str(EMBEDDED / "demo.toml"), seconds=args.seconds or 10.0)
     elif args.what == "recovery":
         from .faults import recovery
 
@@ -598,14 +610,19 @@ def build_parser() -> argparse.ArgumentParser:
                                      "and Python), 'tick' (the daemon's whole tick without the network), "
                                      "'latency' (daemon round trip vs bare Zenoh echo), "
                                      "'recorder' (10 kHz stream set vs bare writer), 'replay' (a long 10 kHz "
-                                     "daemon log replayed from its tick index and from JSON), 'soak' (RSS, drops, "
+                                     "daemon log replayed from its tick index and from JSON), 'realtime' (the "
+                                     "highest control rate meeting issue 3's criteria), 'soak' (RSS, drops, "
                                      "overruns over minutes), 'recovery' (kill -9 plant / neighbour, time "
                                      "back to +-2 %%)")
-    b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "replay", "soak", "recovery"])
+    b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "replay", "realtime", "soak",
+                                    "recovery"])
+    b.add_argument("--rates", metavar="HZ,HZ,...", help="realtime: control rates to try (default 1000,2000,5000,10000)")
+    b.add_argument("--delays", metavar="N,N,...", help="realtime: loop-delay schedules to try, samples (default 1,2,3)")
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
     b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
-    b.add_argument("--seconds", type=float, default=10.0,
-                   help="recorder: paced run length; replay: log length (default %(default)s)")
+    b.add_argument("--seconds", type=float, default=None,
+                   help="recorder: paced run length (default 10); replay: log length (default 10); realtime: each "
+                        "run (default 2)")
     b.add_argument("-n", type=int, default=None,
                    help="latency: round trips per target (default 3000); tick: ticks (default 20000)")
     b.add_argument("--wait", choices=["block", "spin"], default="block", help="latency: daemon wait strategy")

@@ -100,3 +100,19 @@ def test_bench_core_and_tick_measure_both_cores_in_one_run(capsys):
         assert tick[impl]["core_impl"] == impl and tick[impl]["p50_us"] > 0
         assert tick[impl]["loop_delay_measured"] == 3  # the demo's delay, measured from the run it replays
         assert tick[impl]["recorder_drops"] == {}
+
+
+def test_realtime_bench_judges_each_criterion():
+    """bench realtime's verdict: every criterion of issue 3 can fail a run on its own."""
+    from clients.bench_realtime import judge
+
+    good = {"counters": {"samples": 10_000, "missed": 5, "late": 4},
+            "metrics": {"diverged": False, "hold_max_dev_pct": 1.9},
+            "daemon": {"loop": {"overrun_pct": 0.05}}, "latency_us": {"p50": 300.0, "p99": 900.0}}
+    assert judge(good)["ok"] and judge(good)["missed_or_late_pct"] == 0.09
+    for bad in ({"metrics": {"diverged": False, "hold_max_dev_pct": 2.1}},
+                {"metrics": {"diverged": True, "hold_max_dev_pct": 1.0}},
+                {"daemon": {"loop": {"overrun_pct": 0.1}}},
+                {"counters": {"samples": 10_000, "missed": 6, "late": 4}},
+                {"daemon": {}}):  # no loop statistics: not proven
+        assert not judge({**good, **bad})["ok"], bad
