@@ -21,6 +21,8 @@ from pathlib import Path
 
 from schemas.codec import MEAS
 
+from .bench_latency import percentiles
+
 
 def _trace(scenario_path: str, n: int):
     from schemas.scenario import load_scenario
@@ -87,9 +89,7 @@ def bench_tick(scenario_path: str, n: int = 20_000) -> dict:
                 times, st = drive_daemon(scn, tr, tmp, impl)
             except ImportError:
                 continue
-        times.sort()
-        res[impl] = {"p50_us": times[m // 2] / 1e3, "p99_us": times[int(m * 0.99)] / 1e3,
-                     "max_us": times[-1] / 1e3, "core_impl": impl,
+        res[impl] = {**percentiles(times), "core_impl": impl,
                      "recorder_drops": (st.get("logging") or {}).get("drops"),
                      "loop_delay_measured": st["loop_delay"]["measured_samples"]}
     return res

@@ -357,11 +357,10 @@ def _bench_core(args: argparse.Namespace) -> dict:
     res: dict = {"bench": "core", "scenario": scn.name, "controller": scn.controller.kind,
                  "mapping": scn.controller.mapping, "delay_samples": scn.timing.delay_samples, "steps": n,
                  "passes": max(1, args.repeat)}
+    from .bench_latency import percentiles
+
     for m, tm in times.items():
-        tm.sort()
-        k = len(tm)
-        res[m] = {"mean_us": sum(tm) / k / 1e3, "p50_us": tm[k // 2] / 1e3, "p99_us": tm[int(k * 0.99)] / 1e3,
-                  "max_us": tm[-1] / 1e3}
+        res[m] = {"mean_us": sum(tm) / len(tm) / 1e3, **percentiles(tm)}
     if "c" in res:
         res["python_over_c_p50"] = res["python"]["p50_us"] / res["c"]["p50_us"]
     return res

@@ -78,21 +78,16 @@ def measured_loop_delay(path: str | Path, core: dict) -> dict:
     """The loop delay measured from the log's last plant epoch (service/delay.py)."""
     import numpy as np
 
-    from clients.replay import ReplayError, collect
-    from service.delay import estimate_loop_delay, on_seq_grid
+    from clients.replay import SEQ_BITS, ReplayError, collect
+    from service.delay import loop_delay_report
 
     try:
         tk = collect([path])
     except ReplayError:
         return {"measured_samples": None}
-    last = tk.keys >> 40 == tk.restarts  # the last plant epoch only (seq restarts from 0 at a restart)
+    last = tk.keys >> SEQ_BITS == tk.restarts  # the last plant epoch only (seq restarts from 0 at a restart)
     sent = np.where(tk.has_cmd[last], tk.logged[last], 0.0)
-    u, r = on_seq_grid(tk.rows[last, 0], tk.rows[last, 4], sent)
-    est = estimate_loop_delay(u, r, core["period_s"])
-    d = est["samples"]
-    comp = core.get("delay_samples")
-    return {"measured_samples": d, "compensated_samples": comp, "mismatch": d is not None and d != comp,
-            "window": int(last.sum()), "explained": est["explained"], "contrast": est["contrast"]}
+    return loop_delay_report(tk.rows[last, 0], tk.rows[last, 4], sent, core["period_s"], core.get("delay_samples"))
 
 
 def recover(broken: str | Path, fixed: str | Path) -> dict:

@@ -80,16 +80,26 @@ class LogData:
         return [rows]
 
 
-def _top_level(data: bytes):
-    """(opcode, content offset, content length) of each complete top-level record after the magic; a cut-off
-    file (killed writer) ends at its last complete record."""
-    off, n = 8, len(data)
+def _walk(buf, off: int = 0):
+    """(opcode, content offset, content length) of each complete record of a record sequence from off; a
+    cut-off one (killed writer) ends at its last complete record."""
+    n = len(buf)
     while off + 9 <= n:
-        op, ln = data[off], struct.unpack_from("<Q", data, off + 1)[0]
+        op, ln = buf[off], struct.unpack_from("<Q", buf, off + 1)[0]
         if off + 9 + ln > n:
             return
         yield op, off + 9, ln
         off += 9 + ln
+
+
+def _top_level(data: bytes):
+    """The records of a whole file, after its magic."""
+    return _walk(data, 8)
+
+
+def _config_events(raw) -> list[dict]:
+    """The config-change events among raw event messages (JSON)."""
+    return [d for d in map(json.loads, raw) if d.get("kind") == "config"]
 
 
 def _string(data: bytes, off: int) -> tuple[str, int]:
@@ -173,12 +183,8 @@ def _channel_messages(data: bytes, cids: set[int]) -> list[bytes]:
         if _mcapscan is not None:
             out += [m for cid in sorted(cids) for m in _mcapscan.raw(recs, cid)]
             continue
-        off = 0
-        while off + 9 <= len(recs):  # few chunks, rare messages: a plain walk
-            op2, ln = recs[off], struct.unpack_from("<Q", recs, off + 1)[0]
-            if op2 == 0x05 and struct.unpack_from("<H", recs, off + 9)[0] in cids:
-                out.append(bytes(recs[off + 9 + 22:off + 9 + ln]))
-            off += 9 + ln
+        out += [bytes(recs[c2 + 22:c2 + ln]) for op2, c2, ln in _walk(recs)  # few chunks, rare messages
+                if op2 == 0x05 and struct.unpack_from("<H", recs, c2)[0] in cids]
     return out
 
 
@@ -199,13 +205,14 @@ def _read_fast(path: str | Path, data=None) -> LogData:
         rows = np.frombuffer(_mcapscan.scan(recs, bytes(table), keys), dtype=np.float64)
         out.rows.append(rows.reshape(-1, ROW))
         for cid in events_ids:
-            out.events += [d for d in map(json.loads, _mcapscan.raw(recs, cid)) if d.get("kind") == "config"]
+            out.events += _config_events(_mcapscan.raw(recs, cid))
     return out
 
 
 def _read_general(path: str | Path, data=None) -> LogData:
     out = LogData(core=_core_meta(_read_bytes(path) if data is None else data))
     rows: list[list[float]] = []
+    events: list[bytes] = []
     topics: dict[int, str] = {}
     with open(path, "rb") as f:
         try:  # records in file order, chunks expanded: works on a file without summary too
@@ -214,19 +221,17 @@ def _read_general(path: str | Path, data=None) -> LogData:
                     topics[rec.id] = rec.topic
                 if not isinstance(rec, Message):
                     continue
-                message = rec
                 leaf = topics.get(rec.channel_id, "").rsplit("/", 1)[-1]
                 if leaf in LEAVES:
                     code = LEAVES.index(leaf)
-                    d = json.loads(message.data)
+                    d = json.loads(rec.data)
                     r = [float(code), *(float(d[k]) for k in KEYS[code])]
                     rows.append(r + [0.0] * (ROW - len(r)))
                 elif leaf == "events":
-                    d = json.loads(message.data)
-                    if d.get("kind") == "config":
-                        out.events.append(d)
+                    events.append(rec.data)
         except (McapError, EOFError, struct.error):  # cut off (killed writer): keep what was complete
             pass
+    out.events = _config_events(events)
     out.rows.append(np.array(rows, dtype=np.float64).reshape(-1, ROW))
     return out
 
@@ -271,7 +276,7 @@ def _read_index(path: str | Path, data: bytes) -> LogData | None:
     out = LogData(core=_core_meta(data), ticks=ticks)
     events = {cid for cid, t in topics.items() if t.rsplit("/", 1)[-1] == "events" and counts.get(cid)}
     if events:  # rare: the summary's chunk indexes lead to the few chunks that hold them
-        out.events = [d for d in map(json.loads, _channel_messages(data, events)) if d.get("kind") == "config"]
+        out.events = _config_events(_channel_messages(data, events))
     out.source = "index"
     return out
 
@@ -306,9 +311,14 @@ class Ticks:
     sources: list[str]  # per part: "index" or "json"
 
 
+def _increasing(keys: np.ndarray) -> bool:
+    """Strictly increasing: sorted, no key twice."""
+    return len(keys) < 2 or bool((keys[1:] > keys[:-1]).all())
+
+
 def _last_per_key(keys: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Sorted unique keys and, for each, the values of its last occurrence (a later message wins)."""
-    if len(keys) < 2 or bool((keys[1:] > keys[:-1]).all()):  # already sorted and unique (the usual log): as is
+    if _increasing(keys):  # the usual log: as is
         return keys, vals
     rk = keys[::-1]
     uk, idx = np.unique(rk, return_index=True)
@@ -325,17 +335,33 @@ def _epochs(seq: np.ndarray, is_meas: np.ndarray | None = None) -> np.ndarray:
     return np.cumsum(restart)
 
 
+def _place_config_events(events: list[dict], mk: np.ndarray, mt: np.ndarray, last_epoch: int) -> dict[int, list]:
+    """Config changes by the tick key they precede. mk: the measurements' sorted keys, mt their times. A change
+    belongs to the epoch of the sample before it (the daemon stamps that sample's t)."""
+    placed: dict[int, list] = {}
+    for d in events:
+        s, ep_found = d["seq"], None
+        for e in range(last_epoch + 1):
+            for k in (s - 1, s):
+                j = np.searchsorted(mk, (e << SEQ_BITS) | k)
+                if ep_found is None and j < len(mk) and mk[j] == ((e << SEQ_BITS) | k) and mt[j] == d["t"]:
+                    ep_found = e
+        ep = last_epoch if ep_found is None else ep_found
+        placed.setdefault((ep << SEQ_BITS) | s, []).append(json.loads(d["detail"]))
+    return placed
+
+
 def _from_index(data: list[LogData]) -> Ticks | None:
     """Ticks straight from the index rows (already one per tick, in order); None if a seq repeats within an
     epoch (then the general join decides which message wins)."""
     t = np.concatenate([d.ticks for d in data]) if len(data) > 1 else data[0].ticks
     epoch = _epochs(t[:, 0])
     keys = (epoch << SEQ_BITS) | t[:, 0].astype(np.int64)
-    if len(keys) > 1 and not bool((keys[1:] > keys[:-1]).all()):
+    if not _increasing(keys):
         return None
-    if any(d.events for d in data):
-        return None  # config events: let the general path place them (rare; same result, slower)
-    return Ticks(data[0].core, keys, t, t[:, 9], np.ones(len(t), dtype=bool), {}, int(epoch[-1]) if len(t) else 0,
+    last_epoch = int(epoch[-1]) if len(t) else 0
+    cfg_events = _place_config_events([e for d in data for e in d.events], keys, t[:, 1], last_epoch)
+    return Ticks(data[0].core, keys, t, t[:, 9], np.ones(len(t), dtype=bool), cfg_events, last_epoch,
                  [d.source for d in data])
 
 
@@ -371,17 +397,7 @@ def collect(parts: list, use_index: bool = True) -> Ticks:
     has_cmd = (pos < len(ck)) & (ck[pos_c] == keys) if len(ck) else np.zeros(len(keys), bool)
     logged = np.where(has_cmd, cv[pos_c, 3] if len(ck) else np.nan, np.nan)
     last_epoch = int(epoch[-1]) if len(epoch) else 0
-    cfg_events: dict[int, list] = {}
-    for d in (e for dd in data for e in dd.events):
-        # a config change belongs to the epoch of the sample before it (the daemon stamps that t)
-        s, ep_found = d["seq"], None
-        for e in range(last_epoch + 1):
-            for k in (s - 1, s):
-                j = np.searchsorted(mk, (e << SEQ_BITS) | k)
-                if ep_found is None and j < len(mk) and mk[j] == ((e << SEQ_BITS) | k) and mv[j, 2] == d["t"]:
-                    ep_found = e
-        ep = last_epoch if ep_found is None else ep_found
-        cfg_events.setdefault((ep << SEQ_BITS) | s, []).append(json.loads(d["detail"]))
+    cfg_events = _place_config_events([e for d in data for e in d.events], mk, mv[:, 2], last_epoch)
     return Ticks(data[0].core, keys, out, logged, has_cmd, cfg_events, last_epoch, [d.source for d in data])
 
 

@@ -33,7 +33,7 @@ from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, f
 from . import __version__
 from .bus import key, latest, open_session, publisher, queued
 from .core import core_metadata, effective_gain, make_core
-from .delay import estimate_loop_delay, on_seq_grid
+from .delay import loop_delay_report
 from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from .types import Incoming, Sample
 
@@ -607,18 +607,14 @@ class Daemon:
 
     def _estimate_loop_delay(self) -> dict:
         last = self._last_seq
-        out = {"measured_samples": None, "compensated_samples": self.core.d, "mismatch": False, "window": 0}
         if last < 0:
-            return out
+            return {"measured_samples": None, "compensated_samples": self.core.d, "mismatch": False, "window": 0}
         seqs = np.arange(max(0, last - HIST + 1), last + 1)  # this plant epoch's newest ticks, oldest first
         idx = seqs & (HIST - 1)
-        have = np.frombuffer(self._hist_seq, dtype=np.int64)[idx] == seqs
-        u, r = on_seq_grid(seqs[have], np.frombuffer(self._hist_u)[idx][have], np.frombuffer(self._hist_r)[idx][have])
-        est = estimate_loop_delay(u, r, self.period_s)
-        d = est["samples"]
-        out.update(measured_samples=d, mismatch=d is not None and d != self.core.d, window=int(have.sum()),
-                   explained=est["explained"], contrast=est["contrast"])
-        return out
+        hist_seq = np.frombuffer(self._hist_seq, dtype=np.int64)
+        idx = idx[hist_seq[idx] == seqs]  # slots still holding this epoch's tick of that seq
+        return loop_delay_report(hist_seq[idx], np.frombuffer(self._hist_u)[idx], np.frombuffer(self._hist_r)[idx],
+                                 self.period_s, self.core.d)
 
     def _logging_status(self) -> dict | None:
         rec = self.recorder

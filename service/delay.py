@@ -25,7 +25,7 @@ def estimate_loop_delay(u_V, du_dt_V_per_s, T_s: float, max_delay: int = 8, min_
     Returns {"samples": d or None, "explained": 1 - S_d / sum (x - mean x)^2 (the part of the measured rate
     the delayed commands explain), "contrast": 1 - S_d / S_second (how much better d fits than the next
     best), "n": samples used, "sse": [S_0, ...] normalised by n}. ``samples`` is None when fewer than
-    4 (max_delay + 1) samples are given, or when contrast < min_contrast (commands too steady to tell).
+    4 * (max_delay + 1) rows can be formed, or when contrast < min_contrast (commands too steady to tell).
     """
     u = np.asarray(u_V, dtype=float)
     r = np.asarray(du_dt_V_per_s, dtype=float)
@@ -51,7 +51,6 @@ def estimate_loop_delay(u_V, du_dt_V_per_s, T_s: float, max_delay: int = 8, min_
     return res
 
 
-
 def on_seq_grid(seq, u_V, du_dt_V_per_s) -> tuple[np.ndarray, np.ndarray]:
     """(u, du/dt) on every sequence number from the first to the last given: u NaN where a sample was not
     ticked (no Delta u there), du/dt 0 where no command was sent (the plant held the source voltage)."""
@@ -64,3 +63,13 @@ def on_seq_grid(seq, u_V, du_dt_V_per_s) -> tuple[np.ndarray, np.ndarray]:
     u[k] = u_V
     r[k] = du_dt_V_per_s
     return u, r
+
+
+def loop_delay_report(seq, u_V, du_dt_V_per_s, T_s: float, compensated: int | None) -> dict:
+    """What status and ``log info`` report: the delay measured from ticks (seq, measured u, du/dt sent; one plant
+    epoch) against the delay the core compensates."""
+    u, r = on_seq_grid(seq, u_V, du_dt_V_per_s)
+    est = estimate_loop_delay(u, r, T_s)
+    d = est["samples"]
+    return {"measured_samples": d, "compensated_samples": compensated, "mismatch": d is not None and d != compensated,
+            "window": len(seq), "explained": est["explained"], "contrast": est["contrast"]}

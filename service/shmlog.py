@@ -21,6 +21,7 @@ import os
 import struct
 import threading
 import time
+from array import array
 from multiprocessing import shared_memory
 from pathlib import Path
 
@@ -166,11 +167,8 @@ class TickIndex:
     COLUMNS = ("seq", "t", "i", "v", "u", "i_load", "P_r_in", "P_r_in_dot", "stepped", "du_dt")
 
     def __init__(self, k_meas: int, k_zin: int, k_cmd: int, every: int = 8192):
-        from array import array
-
         self.kinds = (k_meas, k_zin, k_cmd)
         self.every = every
-        self._array = array
         self.rows = array("d")
         self._m: tuple | None = None
         self._z: tuple | None = None
@@ -212,7 +210,7 @@ class TickIndex:
 
         f.attachment(self.NAME, self.MEDIA_TYPE, zstandard.ZstdCompressor(level=1).compress(self.rows.tobytes()),
                      self.rows[1])
-        self.rows = self._array("d")
+        self.rows = array("d")
 
 
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
