@@ -371,7 +371,9 @@ def _zenoh_from_args(args: argparse.Namespace):
 
     return config_from_dict(ZenohConfig, {"mode": args.mode, "connect": args.connect or [],
                                           "listen": args.listen or [], "config_file": args.zenoh_config,
-                                          "user": args.user, "password_file": args.password_file}, source="options")
+                                          "user": args.user, "password_file": args.password_file,
+                                          "tls_root_ca": args.tls_root_ca, "tls_certificate": args.tls_certificate,
+                                          "tls_private_key": args.tls_private_key}, source="options")
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -638,6 +640,9 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--zenoh-config", metavar="FILE.json5", help="a Zenoh config file, passed through")
         sp.add_argument("--user", help="Zenoh user/password authentication: user name (with --password-file)")
         sp.add_argument("--password-file", metavar="FILE", help="file holding the password (mode 600)")
+        sp.add_argument("--tls-root-ca", metavar="CA.pem", help="tls/ endpoints: the CA of the router's certificate")
+        sp.add_argument("--tls-certificate", metavar="CERT.pem", help="mutual TLS: this client's certificate")
+        sp.add_argument("--tls-private-key", metavar="KEY.pem", help="mutual TLS: its private key (mode 600)")
 
     r = sub.add_parser("run", help="the controller daemon for one component (Zenoh)",
                        description="Fixed-rate control loop on Zenoh; see README 'Daemon' for the key expressions. "

@@ -8,6 +8,7 @@ import pytest
 import zenoh
 from conftest import ROOT, SCENARIOS
 
+from clients.cli import main
 from clients.live import run_live, wait_until
 from clients.query import QueryError, query
 from clients.secure import ROUTER_FILE, run_router, tls_endpoint, write_profile
@@ -142,8 +143,14 @@ def test_only_an_operator_sets_config(secure, tmp_path):
         finally:
             s.close()
         assert d.core.cfg.K_per_s == 900.0 and d.config_version == 1
-        # the monitor still reads
+        # the monitor still reads, also through the CLI (its options carry the same credentials and certificate)
         assert query(mon, P, "source", "config", timeout_s=5.0)["controller"]["K_per_s"] == 900.0
+        cli = ["query", "config", "--component", "source", "--json", "--mode", "client", "--connect", mon.connect[0],
+               "--user", "monitor", "--password-file", mon.password_file]
+        if mon.tls_certificate:
+            cli += ["--tls-root-ca", mon.tls_root_ca, "--tls-certificate", mon.tls_certificate,
+                    "--tls-private-key", mon.tls_private_key]
+        assert main(cli) == 0
         assert query(mon, P, "source", "status", timeout_s=5.0)["id"] == "source"
     finally:
         d.stop()
