@@ -50,7 +50,6 @@ typedef struct {
     int head;
     double r_prev;
     double o[O_N];
-    Py_ssize_t exports;
 } Kernel;
 
 static void predict(double *pi, double *pv, double *pu, double P, double r, double T, int n, double R, double L,
@@ -486,21 +485,13 @@ static PyObject *Kernel_applied_rate(Kernel *self, PyObject *Py_UNUSED(ignored))
     return PyFloat_FromDouble(self->d > 0 ? self->pending[self->head] : self->r_prev);
 }
 
+/* The outputs, read-only; the view holds a reference to the kernel, which owns o[] for its whole life. */
 static int Kernel_getbuffer(Kernel *self, Py_buffer *view, int flags)
 {
-    int rc = PyBuffer_FillInfo(view, (PyObject *)self, self->o, sizeof(self->o), 1, flags);
-    if (rc == 0)
-        self->exports++;
-    return rc;
+    return PyBuffer_FillInfo(view, (PyObject *)self, self->o, sizeof(self->o), 1, flags);
 }
 
-static void Kernel_releasebuffer(Kernel *self, Py_buffer *view)
-{
-    (void)view;
-    self->exports--;
-}
-
-static PyBufferProcs Kernel_as_buffer = {(getbufferproc)Kernel_getbuffer, (releasebufferproc)Kernel_releasebuffer};
+static PyBufferProcs Kernel_as_buffer = {(getbufferproc)Kernel_getbuffer, NULL};
 
 static PyMethodDef Kernel_methods[] = {
     {"set_params", (PyCFunction)Kernel_set_params, METH_VARARGS, "set gains and limits (see fastcore.py)"},
