@@ -63,6 +63,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     m = dict(res.metrics)
     m["wall_s"] = wall
     m["violations"] = [v.__dict__ for v in res.violations[:20]]
+    if res.forecasts:
+        m["forecasts"] = [f.as_dict() for f in res.forecasts]
     if args.json:
         print(json.dumps({"scenario": scn.name, "controller": scn.controller.kind, **m}))
     else:
@@ -70,6 +72,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
               f"{scn.timing.control_rate_hz:g} Hz control, {scn.timing.delay_samples} samples delay, "
               f"{scn.timing.duration_s:g} s simulated in {wall:.2f} s")
         print(metrics_table([([scn.name, scn.controller.kind], res.metrics)], ["scenario", "controller"]))
+        W = scn.feasibility.window_s
+        for k, f in enumerate(res.forecasts):  # the check made before each window ran
+            verdict = (f"feasible: forecast Qdot^r,out [{f.Qdot_lo:.4g}, {f.Qdot_hi:.4g}] W/s inside Qdot^r,in "
+                       f"[{f.z_in[2]:.4g}, {f.z_in[3]:.4g}] W/s" if f.feasible else f"INFEASIBLE: {f.reason}")
+            print(f"feasibility ahead of window {k} ({k * W:g} s): {verdict}")
         for v in res.violations[:5]:
             print(f"feasibility: {v.element} left [{v.lo:.4g}, {v.hi:.4g}] at t = {v.t:.4f} s (value {v.value:.4g})")
         if args.out:

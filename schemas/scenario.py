@@ -171,6 +171,17 @@ class ControllerConfig(Strict):
     limits: LimitsConfig = LimitsConfig()
 
 
+class OutgoingForecastConfig(Strict):
+    """Forecast of the component's own outgoing range Z^{r,out}[k] per window, checked against Z^{r,in}[k]
+    ahead of the window (service/forecast.py)."""
+
+    enabled: bool = Field(default=False, description="forecast Z^{r,out}[k] for each window and check it ahead")
+    load_steps: bool = Field(default=True, description="the neighbours' loads may jump anywhere inside their range "
+                                                       "(False: they only ramp, within their rate range)")
+    settle_s: Annotated[float, Field(gt=0, le=1.0)] = Field(
+        default=0.025, description="each forecast run holds this long after the load stops moving (s)")
+
+
 class FeasibilityConfig(Strict):
     """Per-window interaction ranges (paper Eqn IncomingIntRange)."""
 
@@ -180,6 +191,7 @@ class FeasibilityConfig(Strict):
         default=False,
         description="True: Qdot range offset (2/tau')[P_min, P_max] as printed; False: (2/tau')[-P_max, P_max]",
     )
+    forecast: OutgoingForecastConfig = OutgoingForecastConfig()
 
 
 class Scenario(Strict):

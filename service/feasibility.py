@@ -29,6 +29,21 @@ def tau_prime(L: float, R: float, K: float) -> float:
     return min(a, b)
 
 
+def announced_window(t: float, window_s: float) -> int:
+    """The window whose range a message sent at t (s) carries (topic .../z): the current one during its first
+    half, the next one during its second half, so a neighbour holds each window's range half a window before it
+    starts (window 0: from the first message on)."""
+    k = int(t // window_s)
+    return k + 1 if t - k * window_s >= 0.5 * window_s else k
+
+
+def load_box(P_lo: float, P_hi: float, Pdot_lo: float, Pdot_hi: float, margin: float = 0.0
+             ) -> tuple[float, float, float, float]:
+    """A forecast box widened by ``margin`` of its largest magnitude on each side (paper: T_s = 1 s windows)."""
+    span, dspan = max(abs(P_lo), abs(P_hi)) * margin, max(abs(Pdot_lo), abs(Pdot_hi)) * margin
+    return P_lo - span, P_hi + span, Pdot_lo - dspan, Pdot_hi + dspan
+
+
 def incoming_range(P_min: float, P_max: float, Pdot_min: float, Pdot_max: float, tau_p: float,
                    literal: bool = False) -> tuple[float, float, float, float]:
     """(P_lo, P_hi, Qdot_lo, Qdot_hi) of the incoming interaction variable for one window."""

@@ -16,7 +16,8 @@ import numpy as np
 from schemas.scenario import Scenario
 
 from .core import effective_gain, make_core
-from .feasibility import FeasibilityMonitor, Violation, incoming_range, tau_prime
+from .feasibility import FeasibilityMonitor, Violation, incoming_range, load_box, tau_prime
+from .forecast import OutgoingForecast, forecast_outgoing
 from .plant import RLCPlant, Sensor, load_current
 from .profiles import Profile
 from .types import Incoming
@@ -41,6 +42,7 @@ class SimResult:
     violations: list[Violation] = field(default_factory=list)
     windows: list = field(default_factory=list)
     delay_compensation: int = 0
+    forecasts: list[OutgoingForecast] = field(default_factory=list)  # per window, when feasibility.forecast is on
 
 
 def substeps(period_s: float, plant_step_s: float) -> int:
@@ -64,15 +66,17 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
 
     feas = FeasibilityMonitor(scn.feasibility.window_s)
     tp = tau_prime(scn.model.L_H, scn.model.R_ohm, effective_gain(scn.controller, scn.model))
-    n_win = max(1, math.ceil(tm.duration_s / scn.feasibility.window_s - 1e-9))
-    margin = scn.feasibility.forecast_margin
+    fs = scn.feasibility
+    n_win = max(1, math.ceil(tm.duration_s / fs.window_s - 1e-9))
+    forecasts: list[OutgoingForecast] = []
     for k in range(n_win):
-        t0 = k * scn.feasibility.window_s
-        lo, hi, dlo, dhi = load.range_over(t0, min(t0 + scn.feasibility.window_s, tm.duration_s))
-        span = max(abs(lo), abs(hi)) * margin
-        dspan = max(abs(dlo), abs(dhi)) * margin
-        feas.set_range(k, incoming_range(lo - span, hi + span, dlo - dspan, dhi + dspan, tp,
-                                         scn.feasibility.literal_paper_range))
+        t0 = k * fs.window_s
+        box = load_box(*load.range_over(t0, min(t0 + fs.window_s, tm.duration_s)), fs.forecast_margin)
+        feas.set_range(k, incoming_range(*box, tp, fs.literal_paper_range))
+        if fs.forecast.enabled:  # the feed-forward check, before the window runs
+            forecasts.append(forecast_outgoing(scn.controller, scn.model, T, tm.delay_samples, box, tp,
+                                               steps=fs.forecast.load_steps, settle_s=fs.forecast.settle_s,
+                                               max_ramp_s=fs.window_s, literal=fs.literal_paper_range, impl=impl))
 
     t_warm = 5.0 * scn.controller.deriv_tau_s  # derivative estimates need ~5 tau of history
     y_ref_of = core.y_ref_of  # the controller's own reference map, evaluated on the true state
@@ -114,7 +118,9 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     cols = np.asarray(rows, dtype=float).reshape(len(rows), len(TRACE_FIELDS)).T
     trace = {f: cols[k].copy() for k, f in enumerate(TRACE_FIELDS)}
     metrics = compute_metrics(trace, v_ref, tm.duration_s, diverged, feas.count)
-    return SimResult(scn, trace, metrics, feas.violations, list(feas.windows.values()), core.d)
+    metrics["forecast_infeasible_windows"] = (sum(not f.feasible for f in forecasts) if fs.forecast.enabled
+                                              else None)
+    return SimResult(scn, trace, metrics, feas.violations, list(feas.windows.values()), core.d, forecasts)
 
 
 def compute_metrics(tr: dict[str, np.ndarray], v_ref: float, duration_s: float, diverged: bool,

@@ -1,0 +1,325 @@
+"""This component's outgoing interaction range Z^{r,out}[k], forecast ahead of window k.
+
+Paper Sec. "Feed-forward checking of feasibility conditions": given the ranges of its incoming
+interaction variable for window k (from the neighbours' forecasts), Sigma_1 "is to compute the ranges
+of outgoing interaction variables using the definition in Eqn IntModelCommon given its local control
+saturation and local predicted disturbance limits"; the window is feasible only if
+Z^{r,out}[k] is inside Z^{r,in}[k] (Lemma "Feasibility of component interconnection", Eqn
+FeasibilityConds). The paper leaves the numerical method open ("a topic of future research").
+
+Ours: the closed loop itself (the same core and plant model every driver uses, noise-free, with the
+configured loop delay, the controller's own u and du/dt limits) is run over the admissible load
+trajectories that bound the forecast box P_l in [P_lo, P_hi], dP_l/dt in [Pdot_lo, Pdot_hi]:
+from equilibrium at each end of the range, hold; ramp to the other end at the extreme admissible
+rate, then hold; and (``steps=True``, the default: a load that can switch) jump to the other end,
+then hold. Each run lasts the ramp plus ``settle_s``. The envelope over all runs, after the
+estimator's warm-up, is the forecast:
+
+    P^{r,out}    = -v i_2 = -P_l                       (the port identity: exact for a CPL)   W
+    dP^{r,out}/dt = -dP_l/dt                                                                 W/s
+    Qdot^{r,out} = Qdot_l + 2 (i dv/dt - v di/dt)      (estimator, Eqn IntModelCommon at the port) W/s
+
+so the P parts are the negated box and the Qdot part carries the internal dynamics: the voltage
+transients the controller allows when the load moves. Local saturation shows as the source voltage
+u reaching [u_min, u_max], ticks at the du/dt limit, or v leaving half of v_ref (divergence); any
+of them makes the window infeasible with a named reason. The terminal voltage's range over the runs
+is reported beside the verdict (a transient, not a feasibility condition). Pure: no clocks, no I/O.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import asdict, dataclass, replace
+
+from schemas.scenario import CircuitParams, ControllerConfig, PlantConfig, SourceLimits
+
+from .core import make_core
+from .feasibility import incoming_range
+from .plant import RLCPlant, load_current
+from .types import Incoming, Sample
+
+FORECAST_STEP_S = 5e-5  # plant integration step inside the forecast (s): 2 RK4 steps per 10 kHz period
+
+
+class _PiecewiseLinear:
+    """A load power P(t) (W) through (t, P) points, constant outside them; the plant's load interface."""
+
+    __slots__ = ("pts",)
+
+    def __init__(self, pts: list[tuple[float, float]]):
+        self.pts = pts
+
+    def value(self, t: float) -> float:
+        pts = self.pts
+        if t <= pts[0][0]:
+            return pts[0][1]
+        for (t0, p0), (t1, p1) in itertools.pairwise(pts):
+            if t < t1:
+                return p1 if t1 == t0 else p0 + (p1 - p0) * (t - t0) / (t1 - t0)
+        return pts[-1][1]
+
+    def rate(self, t: float) -> float:
+        pts = self.pts
+        for (t0, p0), (t1, p1) in itertools.pairwise(pts):
+            if t0 <= t < t1:
+                return (p1 - p0) / (t1 - t0)
+        return 0.0
+
+
+@dataclass(frozen=True)
+class OutgoingForecast:
+    """Z^{r,out}[k] (forecast), Z^{r,in}[k] (from the neighbours) and the verdict for one window."""
+
+    P_lo: float  # W, P^{r,out}
+    P_hi: float
+    P_dot_lo: float  # W/s, dP^{r,out}/dt
+    P_dot_hi: float
+    Qdot_lo: float  # W/s, Qdot^{r,out}
+    Qdot_hi: float
+    z_in: tuple[float, float, float, float]  # (P_lo, P_hi, Qdot_lo, Qdot_hi) of Z^{r,in}[k], W and W/s
+    v_lo: float  # V, terminal voltage over all runs after warm-up
+    v_hi: float
+    u_lo: float  # V, source voltage over all runs
+    u_hi: float
+    limited_ticks: int  # ticks at the du/dt or u limit
+    runs: int
+    steps: int  # control periods simulated in all
+    saturation: str  # "" or the local saturation met (divergence, u at its limits, du/dt at its limit)
+    feasible: bool
+    reason: str  # "" when feasible, else what failed first
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def for_box(self, box: tuple[float, float, float, float], tau_p: float, literal: bool = False
+                ) -> OutgoingForecast:
+        """This forecast judged for a load box inside the one it was run for (a cached forecast of a widened
+        box): P parts from the box itself (port identity), Qdot envelope and saturation as run (conservative),
+        Z^{r,in} and the verdict from the box."""
+        z_in = incoming_range(*box, tau_p, literal)
+        reason = self.saturation
+        if not reason and (self.Qdot_lo < z_in[2] or self.Qdot_hi > z_in[3]):
+            reason = (f"Qdot^r,out [{self.Qdot_lo:.4g}, {self.Qdot_hi:.4g}] W/s is not inside Qdot^r,in "
+                      f"[{z_in[2]:.4g}, {z_in[3]:.4g}] W/s")
+        return replace(self, P_lo=-box[1], P_hi=-box[0], P_dot_lo=-box[3], P_dot_hi=-box[2], z_in=z_in,
+                       feasible=reason == "", reason=reason)
+
+
+def trajectories(P_lo: float, P_hi: float, Pdot_lo: float, Pdot_hi: float, t0: float, settle_s: float,
+                 steps: bool, max_ramp_s: float = math.inf) -> list[list[tuple[float, float]]]:
+    """The admissible extreme load trajectories of the box, as (t, P) points starting at t0 (s); a ramp stops
+    after max_ramp_s (the window ends first)."""
+    out: list[list[tuple[float, float]]] = []
+    span = P_hi - P_lo
+    for a, b in ((P_lo, P_hi), (P_hi, P_lo)):
+        out.append([(t0, a), (t0 + settle_s, a)])
+        if span <= 0.0:
+            continue
+        rate = Pdot_hi if b > a else Pdot_lo
+        if rate != 0.0 and (rate > 0.0) == (b > a):
+            t_ramp = min(span / abs(rate), max_ramp_s)
+            c = a + rate * t_ramp
+            out.append([(t0, a), (t0 + t_ramp, c), (t0 + t_ramp + settle_s, c)])
+        if steps:
+            out.append([(t0, a), (t0, b), (t0 + settle_s, b)])
+    if len(out) > 1 and span <= 0.0:
+        out = out[:1]
+    return out
+
+
+def forecast_outgoing(controller: ControllerConfig, model: CircuitParams, period_s: float, delay_samples: int,
+                      box: tuple[float, float, float, float], tau_p: float, *, steps: bool = True,
+                      settle_s: float = 0.025, max_ramp_s: float = 1.0, literal: bool = False,
+                      impl: str | None = None) -> OutgoingForecast:
+    """Forecast Z^{r,out} for a window whose load box is (P_lo, P_hi, Pdot_lo, Pdot_hi) (W, W/s) and check it
+    against Z^{r,in} = incoming_range(box, tau_p) (paper Eqn IncomingIntRange). A ramp longer than max_ramp_s
+    (s; a window is no longer) is cut there."""
+    P_lo, P_hi, Pdot_lo, Pdot_hi = box
+    lim = controller.limits
+    v_ref = controller.v_ref_V
+    T = float(period_s)
+    n_sub = max(1, math.ceil(T / FORECAST_STEP_S - 1e-9))
+    t_warm = max(5.0 * controller.deriv_tau_s, 10 * T)  # the estimator's derivative history fills
+    plant_cfg = PlantConfig(R_ohm=model.R_ohm, L_H=model.L_H, C_F=model.C_F,
+                            source=SourceLimits(u_min_V=lim.u_min_V, u_max_V=lim.u_max_V))
+    Q_lo = Q_hi = 0.0
+    v_lo = u_lo = math.inf
+    v_hi = u_hi = -math.inf
+    limited = n_steps = 0
+    reason = ""
+    runs = trajectories(P_lo, P_hi, Pdot_lo, Pdot_hi, t_warm, settle_s, steps, max_ramp_s)
+    for pts in runs:
+        load = _PiecewiseLinear(pts)
+        plant = RLCPlant(plant_cfg, load)  # type: ignore[arg-type] - duck-typed load profile
+        P0 = pts[0][1]
+        plant.i = P0 / v_ref
+        plant.v = v_ref
+        plant.u = v_ref + model.R_ohm * plant.i
+        core = make_core(controller, model, T, delay_samples, impl)
+        pending = [0.0] * delay_samples
+        n = int(math.ceil(pts[-1][0] / T)) + 1
+        for k in range(n):
+            t = plant.t
+            P = load.value(t)
+            i2 = load_current(P, plant.v, plant.v_min)
+            out = core.step(Sample(k, t, plant.i, plant.v, plant.u, i2), Incoming(-P, -load.rate(t)))
+            r = out.du_dt
+            if delay_samples:
+                pending.append(r)
+                r = pending.pop(0)
+            if t >= t_warm:
+                est = out.est
+                q = est.Qdot_r_out_port
+                Q_lo = min(Q_lo, q)
+                Q_hi = max(Q_hi, q)
+                v_lo, v_hi = min(v_lo, plant.v), max(v_hi, plant.v)
+                u_lo, u_hi = min(u_lo, plant.u), max(u_hi, plant.u)
+                if out.limited:
+                    limited += 1
+            plant.advance(r, T, n_sub)
+            if not (0.5 * v_ref < plant.v < 2.0 * v_ref) or not math.isfinite(plant.i):
+                reason = reason or f"v leaves 50 % of v_ref (load {pts[0][1]:.0f} -> {pts[-1][1]:.0f} W)"
+                break
+        n_steps += k + 1
+    if not reason:
+        if u_lo <= lim.u_min_V or u_hi >= lim.u_max_V:
+            reason = f"source voltage saturates: u in [{u_lo:.2f}, {u_hi:.2f}] V"
+        elif limited:
+            reason = f"du/dt at its limit on {limited} ticks"
+    f = OutgoingForecast(0.0, 0.0, 0.0, 0.0, Q_lo, Q_hi, (0.0,) * 4, v_lo, v_hi, u_lo, u_hi, limited, len(runs),
+                         n_steps, reason, False, "")
+    return f.for_box(box, tau_p, literal)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The daemon's side: the forecast runs off the loop thread and off the loop's GIL (one spawned worker process).
+
+
+def widen_to_grid(box: tuple[float, float, float, float], quantum: float) -> tuple[float, float, float, float]:
+    """The box widened outward to a grid of ``quantum`` of each pair's magnitude (rounded up to a power of 2), so
+    that nearby boxes share one forecast and the forecast stays conservative."""
+    out = []
+    for lo, hi in ((box[0], box[1]), (box[2], box[3])):
+        mag = max(abs(lo), abs(hi))
+        if mag == 0.0 or quantum <= 0.0:
+            out += [lo, hi]
+            continue
+        q = quantum * 2.0 ** math.ceil(math.log2(mag))
+        out += [math.floor(lo / q) * q, math.ceil(hi / q) * q]
+    return out[0], out[1], out[2], out[3]
+
+
+def _worker_ready() -> bool:
+    return True
+
+
+class ForecastWorker:
+    """Forecasts Z^{r,out}[w] for the newest window the neighbours announced (``request`` from the loop thread:
+    stores a tuple and sets an event, never waits). A thread of its own hands the request to one worker process
+    and keeps the result in ``result`` ((window, OutgoingForecast), replaced whole) for the loop to publish.
+    Forecasts are cached by (widened box, controller)."""
+
+    CACHE = 64
+
+    def __init__(self, model: CircuitParams, period_s: float, delay_samples: int, cfg, window_s: float,
+                 quantum: float = 0.02, on_result=None):
+        import threading
+
+        self.model, self.period_s, self.delay_samples = model, period_s, delay_samples
+        self.cfg, self.window_s, self.quantum = cfg, window_s, quantum
+        self.on_result = on_result
+        self.result: tuple[int, OutgoingForecast] | None = None
+        self.computed = self.cache_hits = self.errors = self.infeasible = 0
+        self.last_error = ""
+        self.last_ms = 0.0
+        self._cache: dict = {}
+        self._req: tuple | None = None
+        self._ev = threading.Event()
+        self._stop = False
+        self._pool = None
+        self._thread = threading.Thread(target=self._run, name="forecast", daemon=True)
+
+    def start(self) -> None:
+        """Start the worker process and wait until it has imported everything (about 1 s of CPU: better before
+        the loop runs than during its first window)."""
+        self._pool = self._new_pool()
+        self._pool.submit(_worker_ready).result(timeout=60)
+        self._thread.start()
+
+    @staticmethod
+    def _new_pool():
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+
+    def request(self, window: int, box: tuple[float, float, float, float], controller: ControllerConfig) -> None:
+        self._req = (window, box, controller)
+        self._ev.set()
+
+    def close(self) -> None:
+        self._stop = True
+        self._ev.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def status(self) -> dict:
+        res = self.result
+        out: dict = {"computed": self.computed, "cache_hits": self.cache_hits, "infeasible_windows": self.infeasible,
+                     "errors": self.errors, "last_error": self.last_error, "last_compute_ms": round(self.last_ms, 2)}
+        if res is not None:
+            w, f = res
+            out.update(window=w, feasible=f.feasible, reason=f.reason,
+                       Z_out={"P": [f.P_lo, f.P_hi], "P_dot": [f.P_dot_lo, f.P_dot_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]},
+                       Z_in={"P": list(f.z_in[:2]), "Qdot": list(f.z_in[2:])}, v_range=[f.v_lo, f.v_hi],
+                       u_range=[f.u_lo, f.u_hi], limited_ticks=f.limited_ticks)
+        return out
+
+    def _run(self) -> None:
+        import time
+
+        from .core import effective_gain
+        from .feasibility import tau_prime
+
+        while not self._stop:
+            self._ev.wait()
+            self._ev.clear()
+            req, self._req = self._req, None
+            if self._stop or req is None:
+                continue
+            w, box, ctl = req
+            wide = widen_to_grid(box, self.quantum)
+            key = (wide, ctl.model_dump_json())
+            tau_p = tau_prime(self.model.L_H, self.model.R_ohm, effective_gain(ctl, self.model))
+            f = self._cache.get(key)
+            if f is not None:
+                self.cache_hits += 1
+            else:
+                c = self.cfg
+                t0 = time.perf_counter()
+                try:
+                    f = self._pool.submit(forecast_outgoing, ctl, self.model, self.period_s, self.delay_samples, wide,
+                                          tau_p, steps=c.load_steps, settle_s=c.settle_s,
+                                          max_ramp_s=self.window_s).result(timeout=60)
+                except Exception as e:  # noqa: BLE001 - a broken worker: count, say, start a new one next time
+                    self.errors += 1
+                    self.last_error = f"{type(e).__name__}: {e}"
+                    try:
+                        self._pool.shutdown(wait=False, cancel_futures=True)
+                    finally:
+                        self._pool = self._new_pool()
+                    continue
+                self.last_ms = (time.perf_counter() - t0) * 1e3
+                self.computed += 1
+                if len(self._cache) >= self.CACHE:
+                    self._cache.pop(next(iter(self._cache)))
+                self._cache[key] = f
+            f = f.for_box(box, tau_p)
+            self.infeasible += not f.feasible
+            self.result = (w, f)
+            if self.on_result is not None:
+                self.on_result(w, f)
