@@ -17,6 +17,7 @@ import numpy as np
 from schemas.codec import CMD, MEAS, PLANT, DecodeError, Z
 from schemas.component import LoadPeerConfig, PlantPeerConfig
 from service.bus import key, open_session, publisher, queued
+from service.feasibility import announced_window, load_box
 from service.plant import RLCPlant, Sensor, load_current
 from service.profiles import Profile
 from service.sim import compute_metrics, substeps
@@ -215,13 +216,12 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
     load = Profile(cfg.load, cfg.base_dir)
     session = open_session(cfg.zenoh)
     forecasts: dict[int, tuple[float, float, float, float]] = {}
+    W = cfg.window_s
 
     def forecast(k: int):
         if k not in forecasts:
-            lo, hi, dlo, dhi = load.range_over(k * cfg.window_s, (k + 1) * cfg.window_s)
-            m = cfg.forecast_margin
-            span, dspan = max(abs(lo), abs(hi)) * m, max(abs(dlo), abs(dhi)) * m
-            forecasts[k] = (lo - span, hi + span, dlo - dspan, dhi + dspan)
+            forecasts.pop(k - 2, None)
+            forecasts[k] = load_box(*load.range_over(k * W, (k + 1) * W), cfg.forecast_margin)
         return forecasts[k]
 
     sent = 0
@@ -279,7 +279,7 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
                 z[0] += 0.5 * (t - last[0]) * (P + last[1])
                 z[1] += 0.5 * (t - last[0]) * (Pd + last[2])
             last = (t, P, Pd)
-            k = int(t // cfg.window_s)
+            k = announced_window(t, W)
             vals = (seq, t, P, Pd, Pd, z[0], z[1], k, *forecast(k))
             pub.put(Z.encode(*vals))
             if rec is not None:

@@ -13,6 +13,7 @@ from .scenario import (
     CircuitParams,
     ControllerConfig,
     LoadConfig,
+    OutgoingForecastConfig,
     PlantConfig,
     ProfileConfig,
     ScenarioError,
@@ -100,6 +101,10 @@ class ComponentConfig(Named):
     neighbours: list[str] = Field(default=[], description="ids whose interaction variables form P^{r,in}")
     interaction_rate_hz: Annotated[float, Field(gt=0, le=20000)] = 1000.0
     forecast_window_s: Annotated[float, Field(gt=0)] = 1.0
+    forecast: OutgoingForecastConfig = Field(
+        default=OutgoingForecastConfig(enabled=True),
+        description="forecast this component's Z^{r,out} for each window the neighbours announce, publish it on "
+                    ".../z and check it against Z^{r,in} ahead of the window (in a worker process)")
     neighbour_stale_s: Annotated[float, Field(gt=0)] = 0.05
     plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
     meas_v_min_V: Annotated[float, Field(gt=0)] = Field(default=1.0, description="reject measurements with v below")

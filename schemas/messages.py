@@ -33,7 +33,7 @@ class Command(Msg):
 
 
 class Interaction(Msg):
-    """A component's outgoing interaction variable and its next-window forecast (topic ``.../z``).
+    """A component's outgoing interaction variable and its forecast range for a window (topic ``.../z``).
 
     A neighbour forms its incoming variable as P^{r,in} = -sum_j P_j^{r,out} (paper Eqn PsiMap).
     """
@@ -45,7 +45,8 @@ class Interaction(Msg):
     Qdot_r_out: float = Field(description="outgoing reactive power rate Qdot^{r,out}, W/s")
     z_out0: float = Field(description="integral of P^{r,out}, J")
     z_out1: float = Field(description="integral of Qdot^{r,out}, W")
-    window: int = Field(ge=0, description="index k of the forecast window [k T_s, (k+1) T_s)")
+    window: int = Field(ge=0, description="index k of the window [k T_s, (k+1) T_s) the range is for: the current "
+                                          "one during its first half, the next one during its second half")
     P_min: float = Field(description="forecast range of P^{r,out} over the window, W")
     P_max: float = Field(description="W")
     P_dot_min: float = Field(description="forecast range of dP^{r,out}/dt over the window, W/s")

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import gc
 import json
-import math
 import sys
 import threading
 import time
@@ -35,6 +34,7 @@ from .bus import key, latest, open_session, publisher, queued
 from .core import core_metadata, effective_gain, make_core
 from .delay import loop_delay_report
 from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
+from .forecast import ForecastWorker
 from .types import Incoming, Sample
 
 STATES = ("configured", "active", "inactive", "shutdown")
@@ -92,7 +92,7 @@ SAMPLE_STALE_MIN_NS = 50_000_000  # sample trigger: a lockstep plant may pause t
 
 
 class Neighbour:
-    __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "window", "forecast", "count", "topic",
+    __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "ranges", "count", "topic",
                  "alive", "alive_seen", "lagging")
 
     def __init__(self, nid: str, sub):
@@ -100,8 +100,9 @@ class Neighbour:
         self.seq = -1
         self.t = self.P = self.P_dot = self.Qdot = 0.0
         self.rx_ns = 0
-        self.window = -1
-        self.forecast = (0.0, 0.0, 0.0, 0.0)
+        # its announced forecast boxes (P_min, P_max, P_dot_min, P_dot_max) by window parity: (window, box); a
+        # message carries the current window's or the next one's (feasibility.announced_window)
+        self.ranges: list[tuple[int, tuple]] = [(-1, ()), (-1, ())]
         self.count = 0
         self.topic = ""
         # its liveliness token: None until seen either way, then True/False (the loop polls the token
@@ -109,6 +110,11 @@ class Neighbour:
         self.alive: bool | None = None
         self.alive_seen: bool | None = None
         self.lagging = False  # lockstep: timed out once; not waited for again until it catches up
+
+    def box(self, window: int) -> tuple | None:
+        """Its forecast box for this window, if it announced one."""
+        w, b = self.ranges[window & 1]
+        return b if w == window else None
 
     def fresh(self, now_ns: int, stale_ns: int) -> bool:
         """Heard from within stale_ns, and its liveliness token not gone."""
@@ -142,8 +148,11 @@ class Daemon:
         self.feas = FeasibilityMonitor(cfg.forecast_window_s, keep_windows=100)
         self._tau_p = tau_prime(cfg.model.L_H, cfg.model.R_ohm, effective_gain(cfg.controller, cfg.model))
         self._z_every = max(1, round(cfg.loop.rate_hz / cfg.interaction_rate_hz))
-        self._own_range = [math.inf, -math.inf, math.inf, -math.inf]
         self._window = -1
+        self._zin_window = -1  # the window whose incoming range the monitor holds
+        self._fc_asked = -1  # the newest window a forecast was asked for
+        self._nb_news = False  # a neighbour message arrived since the loop last looked at the ranges
+        self.forecaster: ForecastWorker | None = None
         self.session: zenoh.Session | None = None
         # (seq, measured u, du/dt sent) of the last HIST ticks, for the measured loop delay (service/delay.py):
         # the loop stores, the status query estimates
@@ -183,6 +192,10 @@ class Daemon:
                 print(f"energyctl[{c.id}]: logging degraded: {self.log_error}", file=sys.stderr, flush=True)
             else:
                 self.recorder.wait_ready()  # a failure shows in status as logging: degraded
+        if c.forecast.enabled and self.neighbours:  # a worker process: started (and imported) before the loop runs
+            self.forecaster = ForecastWorker(c.model, self.period_s, self.core.d, c.forecast, c.forecast_window_s,
+                                             on_result=self._forecast_done)
+            self.forecaster.start()
         self._threads = [threading.Thread(target=self._serve, args=(self.queryables[leaf], fn), name=leaf,
                                           daemon=True) for leaf, fn in serve.items()]
         for t in self._threads:
@@ -222,6 +235,8 @@ class Daemon:
 
     def close(self) -> None:
         self.state = "shutdown"
+        if self.forecaster is not None:
+            self.forecaster.close()
         if getattr(self, "recorder", None) is not None:
             self.recorder.close()
         if self.session is not None:
@@ -381,7 +396,12 @@ class Daemon:
                 self._reject(f"{nb.id}.{e.field}: invalid", e.reason)
                 continue
             nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
-            nb.window, nb.forecast = v[7], (v[8], v[9], v[10], v[11])
+            w = v[7]
+            nb.ranges[w & 1] = (w, v[8:12])
+            self._nb_news = True
+            if w > self._fc_asked and self.forecaster is not None and (box := self._box(w)) is not None:
+                self.forecaster.request(w, box, self.core.cfg)  # whatever the loop's state: a feed-forward check
+                self._fc_asked = w
             nb.rx_ns = now
             nb.count += 1
             if self.recorder is not None:
@@ -393,6 +413,8 @@ class Daemon:
             new_cfg, ev, text = self._pending
             self.core.set_gains(new_cfg)
             self.config_version += 1
+            self._tau_p = tau_prime(self.cfg.model.L_H, self.cfg.model.R_ohm, effective_gain(new_cfg, self.cfg.model))
+            self._fc_asked = -1  # forecast again with the new gains (at the next neighbour message)
             self._pending = None
             if self.recorder is not None:  # applies before the next measurement
                 t = self.last_sample[1] if self.last_sample else 0.0
@@ -400,6 +422,16 @@ class Daemon:
             ev.set()
         if self._pending_state is not None:
             self.state, self._pending_state = self._pending_state, None
+
+    def _forecast_done(self, window: int, f) -> None:
+        """The forecast worker's thread: a window's Z^{r,out} forecast and verdict go to the log as an event."""
+        if self.recorder is not None:
+            t = window * self.cfg.forecast_window_s
+            self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "forecast",
+                                               json.dumps({"window": window, **f.as_dict()})))
+        if not f.feasible:
+            print(f"energyctl[{self.cfg.id}]: window {window} forecast infeasible: {f.reason}", file=sys.stderr,
+                  flush=True)
 
     def _neighbour_event(self, nb: Neighbour, t: float) -> None:
         nb.alive_seen = nb.alive
@@ -507,28 +539,29 @@ class Daemon:
         if self.stats.ticks % self._z_every == 0 and self.core.out.est is not None:
             self._publish_z(v[1])
 
+    def _box(self, window: int) -> tuple | None:
+        """The neighbours' forecast boxes for this window, summed (W, W/s), once every neighbour announced it."""
+        lo = hi = dlo = dhi = 0.0
+        for nb in self.neighbours:
+            b = nb.box(window)
+            if b is None:
+                return None
+            lo, hi, dlo, dhi = lo + b[0], hi + b[1], dlo + b[2], dhi + b[3]
+        return (lo, hi, dlo, dhi) if self.neighbours else None
+
     def _feasibility(self, t: float, est) -> None:
+        """Run-time check of the outgoing rates against this window's incoming range (paper Eqn
+        FeasibilityConds), from the neighbours' boxes announced for it."""
         k = int(t // self.cfg.forecast_window_s)
         if k != self._window:
             self._window = k
-            self._own_range = [math.inf, -math.inf, math.inf, -math.inf]
-            if self.neighbours and all(nb.window == k for nb in self.neighbours):
-                lo = sum(nb.forecast[0] for nb in self.neighbours)
-                hi = sum(nb.forecast[1] for nb in self.neighbours)
-                dlo = sum(nb.forecast[2] for nb in self.neighbours)
-                dhi = sum(nb.forecast[3] for nb in self.neighbours)
-                self.feas.set_range(k, incoming_range(lo, hi, dlo, dhi, self._tau_p))
-        r = self._own_range
-        P, Q = est.P_r_out_port, est.Qdot_r_out_port
-        if P < r[0]:
-            r[0] = P
-        if P > r[1]:
-            r[1] = P
-        if Q < r[2]:
-            r[2] = Q
-        if Q > r[3]:
-            r[3] = Q
-        self.feas.update(t, P, Q)
+            self._nb_news = True  # the range for k may have come before k started
+        if self._nb_news:
+            self._nb_news = False
+            if self._zin_window != k and (box := self._box(k)) is not None:
+                self.feas.set_range(k, incoming_range(*box, self._tau_p))
+                self._zin_window = k
+        self.feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
 
     def _publish_z(self, t: float) -> None:
         est = self.core.out.est
@@ -536,10 +569,14 @@ class Daemon:
         v, i2 = fit.value[1], fit.value[2]
         P_dot = -(fit.slope[1] * i2 + v * fit.slope[2])
         z0, z1 = self.core.estimator.z_out
-        r = self._own_range
-        rng = (r[0], r[1], r[2], r[3]) if math.isfinite(r[0]) else (est.P_r_out_port,) * 2 + (0.0, 0.0)
+        fc = self.forecaster.result if self.forecaster is not None else None
+        if fc is not None and fc[0] >= self._window:  # the forecast Z^{r,out} of the current or the next window
+            f = fc[1]
+            w, rng = fc[0], (f.P_lo, f.P_hi, f.P_dot_lo, f.P_dot_hi)
+        else:  # none yet: the present value is the range
+            w, rng = max(self._window, 0), (est.P_r_out_port, est.P_r_out_port, P_dot, P_dot)
         self._z_seq += 1
-        vals = (self._z_seq, t, est.P_r_out_port, P_dot, est.Qdot_r_out_port, z0, z1, max(self._window, 0), *rng)
+        vals = (self._z_seq, t, est.P_r_out_port, P_dot, est.Qdot_r_out_port, z0, z1, w, *rng)
         self.z_pub.put(Z.encode(*vals))
         if self.recorder is not None:
             self.recorder.offer(self.t_zout, t, vals)
@@ -584,7 +621,8 @@ class Daemon:
                                    "lagging": nb.lagging,
                                    "P_r_out": nb.P} for nb in self.neighbours},
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
-                            "recent": [v.__dict__ for v in self.feas.violations[-5:]]},
+                            "recent": [v.__dict__ for v in self.feas.violations[-5:]],
+                            "forecast": self.forecaster.status() if self.forecaster is not None else None},
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,

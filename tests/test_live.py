@@ -27,7 +27,7 @@ def read_topic(path, suffix):
 
 
 def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
-    scn = load_scenario(SCENARIOS / "paper-varying-load.toml", ["timing.duration_s=0.05"])
+    scn = load_scenario(SCENARIOS / "paper-varying-load.toml", ["timing.duration_s=0.05", "feasibility.window_s=0.02"])
     out = tmp_path / "lockstep.mcap"
     res = run_live(scn, lockstep=True, rate_hz=None, out=str(out), duration_s=None, workdir=str(tmp_path))
     assert res["counters"]["timeouts"] == 0 and res["counters"]["commands"] == 500
@@ -48,6 +48,20 @@ def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
     # the daemon measured the plant's delay line from u and its own commands, and compensates exactly that
     ld = res["daemon"]["loop_delay"]
     assert ld["measured_samples"] == scn.timing.delay_samples == 3 and not ld["mismatch"]
+    # the load announced each window half a window ahead; the daemon forecast its Z^{r,out} for it and published
+    # it on .../z (P parts: the negated box), in this run before the window started
+    W = scn.feasibility.window_s
+    boxes = {m["window"]: m for m in read_topic(res["daemon_log"], "/z_nb/load")}
+    z_out = read_topic(res["daemon_log"], "/z_out")
+    events = [json.loads(e["detail"]) for e in read_topic(res["daemon_log"], "/events") if e["kind"] == "forecast"]
+    assert {e["window"] for e in events} == {0, 1, 2} and all(e["feasible"] for e in events)
+    first = {}
+    for m in z_out:
+        first.setdefault(m["window"], m)
+    ahead = [w for w, m in first.items() if w >= 1 and m["t"] < w * W]
+    assert ahead, [(w, m["t"]) for w, m in first.items()]
+    for w in ahead:
+        assert (first[w]["P_min"], first[w]["P_max"]) == (-boxes[w]["P_max"], -boxes[w]["P_min"])
 
 
 @pytest.fixture
@@ -107,6 +121,27 @@ def test_status_config_and_neighbour_freshness(daemon_and_load):
     # the neighbour going silent flips its freshness
     stop_load.set()
     assert wait_until(lambda: not query(zc(ep), "energyctl", "source", "status")["neighbours"]["load"]["fresh"], 5.0)
+
+
+def test_the_daemon_forecasts_each_announced_window_and_checks_it_ahead(daemon_and_load):
+    """The load announces each window's box half a window ahead; the daemon forecasts its own Z^{r,out} for it in
+    its worker process, whatever the loop's state (here it holds: no plant). Publishing: the lockstep test."""
+    d, ep, _stop = daemon_and_load
+
+    def forecast():
+        return query(zc(ep), "energyctl", "source", "status")["feasibility"]["forecast"]
+
+    assert wait_until(lambda: (forecast().get("window") or 0) >= 2, 20.0)
+    f = forecast()
+    box = d.neighbours[0].box(f["window"])
+    assert f["feasible"] and f["reason"] == "" and box is not None
+    assert f["Z_out"]["P"] == [-box[1], -box[0]] and f["Z_out"]["P_dot"] == [-box[3], -box[2]]
+    assert f["Z_out"]["Qdot"][0] < 0 < f["Z_out"]["Qdot"][1]  # a load that may switch moves Qdot^{r,out}
+    assert f["computed"] >= 1 and f["computed"] + f["cache_hits"] >= 3  # one per window; a constant load: cached
+    # a gain too low for the incoming range (tau' = 1/K grows): the next window is flagged before it starts
+    query(zc(ep), "energyctl", "source", "config", sets=["controller.K_per_s=10.0"])
+    assert wait_until(lambda: forecast()["feasible"] is False, 10.0)
+    assert forecast()["reason"].startswith("Qdot^r,out")
 
 
 def test_query_without_a_controller_fails_clearly():
