@@ -297,7 +297,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         scn = _load(args.scenario or str(EMBEDDED / "demo.toml"), list(args.set or []))
         rates = [float(r) for r in (args.rates or "1000,2000,5000,10000").split(",")]
         delays = [int(x) for x in (args.delays or "1,2,3").split(",")]
-        res = bench_realtime(scn, rates, delays, args.seconds or 2.0,
+        loop = {k: v for k, v in (("wait", args.wait), ("catch_up", args.catch_up)) if v is not None}
+        res = bench_realtime(scn, rates, delays, args.seconds or 2.0, loop=loop,
                              progress=lambda r: print(f"  {r['rate_hz']:g} Hz, delay {r['delay_samples']}: "
                                                       f"{'OK' if r['ok'] else 'no'} (dev {r['v_dev_after_50ms_pct']}, "
                                                       f"overruns {r['overrun_pct']:.2f} %, missed/late "
@@ -315,7 +316,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "latency":
         from .bench_latency import bench_latency
 
-        res = bench_latency(n=args.n or 3000, wait=args.wait)
+        res = bench_latency(n=args.n or 3000, wait=args.wait or "block")
     else:
         res = _bench_core(args)
     print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
@@ -633,7 +634,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "run (default 2)")
     b.add_argument("-n", type=int, default=None,
                    help="latency: round trips per target (default 3000); tick: ticks (default 20000)")
-    b.add_argument("--wait", choices=["block", "spin"], default="block", help="latency: daemon wait strategy")
+    b.add_argument("--wait", choices=["block", "spin"], default=None,
+                   help="latency, realtime: the daemon's wait for samples (default: block for latency, spin for "
+                        "realtime)")
+    b.add_argument("--catch-up", type=int, default=None, metavar="N",
+                   help="realtime: answer up to N queued samples in order (loop.catch_up; default 1, the newest)")
     b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
     scen_opts(b)
     b.add_argument("--repeat", type=int, default=3)

@@ -99,7 +99,7 @@ def run_load_cmd(cfg: LoadPeerConfig) -> int:
 
 def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz: float | None = None,
                           controller_delay: int | None = None, out: str | None = None,
-                          duration_s: float | None = None) -> tuple[dict, dict, dict]:
+                          duration_s: float | None = None, loop: dict | None = None) -> tuple[dict, dict, dict]:
     """Component, plant and load configs (as dicts) for one scenario on one loopback endpoint.
 
     The controller listens; plant and load connect to it. The controller ticks on each measurement (the
@@ -116,7 +116,7 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
             "neighbours": ["load"], "plant_id": "source",
             "delay_samples": tm.delay_samples if lockstep else (1 if controller_delay is None else controller_delay),
             "loop": {"rate_hz": rate, "trigger": "sample", "lockstep": lockstep,
-                     "wait": "block" if lockstep else "spin"},
+                     "wait": "block" if lockstep else "spin", **(loop or {})},
             "forecast_window_s": scn.feasibility.window_s, "interaction_rate_hz": 100.0}
     comp["controller"]["delay_compensation_samples"] = None
     if out:
@@ -241,7 +241,7 @@ def _exit_on_term(signum, frame):
 
 def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | None, duration_s: float | None,
              controller_delay: int | None = None, workdir: str | None = None, timeout_s: float = 300.0,
-             secure: bool = False, tls: bool = False) -> dict:
+             secure: bool = False, tls: bool = False, loop: dict | None = None) -> dict:
     """Start controller, load and plant on a free loopback port; wait for the plant; stop the rest.
 
     ``secure``: the three connect as Zenoh clients, each with its own credentials, to a router that
@@ -250,7 +250,7 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
     from service.bus import free_tcp_port
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    comp, plant, load = configs_from_scenario(scn, ep, lockstep, rate_hz, controller_delay, out, duration_s)
+    comp, plant, load = configs_from_scenario(scn, ep, lockstep, rate_hz, controller_delay, out, duration_s, loop)
     tmp = Path(workdir or tempfile.mkdtemp(prefix="energyctl-"))
     if secure:
         from .secure import client_zenoh, write_profile

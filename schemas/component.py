@@ -87,6 +87,10 @@ class LoopConfig(Strict):
     wait: Literal["block", "spin"] = Field(
         default="block", description="sample trigger: block on the queue (frees the core) or spin on it (lower "
                                      "wake-up latency on VMs whose idle vCPUs halt, costs a whole core)")
+    catch_up: Annotated[int, Field(ge=1, le=64)] = Field(
+        default=1, description="sample trigger: when several samples queued up, answer up to this many of the "
+                               "newest, oldest first (each gets its command; older ones count as missing); 1 = only "
+                               "the newest")
     stats_window: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000
 
 

@@ -137,6 +137,7 @@ def queued(session: zenoh.Session, key_expr: str):
     return session.declare_subscriber(key_expr, on_sample), q
 
 
-def latest(session: zenoh.Session, key_expr: str) -> zenoh.Subscriber:
-    """Latest-value subscriber: a ring of one, polled with try_recv() from the loop thread."""
-    return session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(1))
+def latest(session: zenoh.Session, key_expr: str, newest: int = 1) -> zenoh.Subscriber:
+    """Latest-value subscriber: a ring of the ``newest`` messages (default one; a full ring drops its oldest),
+    polled with try_recv() (oldest first) from the loop thread."""
+    return session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(newest))

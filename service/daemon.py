@@ -169,7 +169,7 @@ class Daemon:
         if c.loop.trigger == "sample" and c.loop.wait == "block":
             self.meas_sub, self.meas_q = queued(s, key(c.prefix, plant, "meas"))
         else:
-            self.meas_sub = latest(s, key(c.prefix, plant, "meas"))
+            self.meas_sub = latest(s, key(c.prefix, plant, "meas"), c.loop.catch_up)
         self.cmd_pub = publisher(s, key(c.prefix, c.id, "cmd"))
         self.z_pub = publisher(s, key(c.prefix, c.id, "z"))
         self.neighbours = [Neighbour(n, latest(s, key(c.prefix, n, "z"))) for n in c.neighbours]
@@ -304,7 +304,8 @@ class Daemon:
 
     def _sample_loop(self, max_ticks: int | None) -> None:
         """Tick on each measurement. Wakes on arrival (queue fed by a Zenoh callback); when several
-        arrived, only the newest is used and the others count as missing."""
+        arrived, the newest loop.catch_up are answered in order (default 1: only the newest) and the others
+        count as missing."""
         from queue import Empty
 
         now_ns = time.monotonic_ns
@@ -312,6 +313,7 @@ class Daemon:
         lockstep = self.cfg.loop.lockstep
         timeout_ns = int(self.cfg.loop.lockstep_timeout_s * 1e9)
         spin = self.cfg.loop.wait == "spin"
+        catch_up = self.cfg.loop.catch_up
         sub = self.meas_sub
         prev = idle = 0
         # no sample for this long -> degraded (every answered sample was already answered: nothing to publish)
@@ -343,7 +345,7 @@ class Daemon:
                 except Empty:
                     check_stale(now_ns())
                     continue
-                while not q.empty():  # newest wins
+                while q.qsize() >= catch_up:  # keep the newest catch_up; this one first, the rest next round
                     item = q.get_nowait()
                 payload = item[1]
             start = now_ns()

@@ -65,6 +65,7 @@ def daemon_by_hand():
     comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
     comp["neighbour_stale_s"] = 10.0
     comp["loop"]["trigger"] = "clock"
+    comp["forecast"] = {"enabled": False}  # no worker process: these tests feed samples, not windows
     d = Daemon(config_from_dict(ComponentConfig, comp))
     d.open()
     nb = d.neighbours[0]

@@ -13,6 +13,7 @@ from mcap.reader import make_reader
 from clients.live import configs_from_scenario, run_live, wait_until
 from clients.peers import run_load
 from clients.query import QueryError, query
+from schemas.codec import CMD, MEAS
 from schemas.component import ComponentConfig, LoadPeerConfig, ZenohConfig, config_from_dict
 from schemas.scenario import load_scenario
 from service.bus import free_tcp_port
@@ -142,6 +143,31 @@ def test_the_daemon_forecasts_each_announced_window_and_checks_it_ahead(daemon_a
     query(zc(ep), "energyctl", "source", "config", sets=["controller.K_per_s=10.0"])
     assert wait_until(lambda: forecast()["feasible"] is False, 10.0)
     assert forecast()["reason"].startswith("Qdot^r,out")
+
+
+@pytest.mark.parametrize(("catch_up", "answered"), [(1, [5]), (3, [3, 4, 5])])
+def test_a_sample_triggered_loop_answers_the_newest_queued_samples_in_order(catch_up, answered):
+    """loop.catch_up: of six queued samples, the newest catch_up are answered, oldest first; 1 = only the newest."""
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
+    comp["neighbours"] = []
+    comp["loop"].update(trigger="sample", wait="block", catch_up=catch_up)
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    try:
+        got = []
+        sub = d.session.declare_subscriber("energyctl/source/cmd",
+                                           lambda m: got.append(CMD.decode(m.payload.to_bytes())[0]))
+        pub = d.session.declare_publisher("energyctl/source/meas")
+        for k in range(6):
+            pub.put(MEAS.encode(k, k * 1e-4, 15.0, 80.0, 80.15, 15.0))
+        assert wait_until(lambda: d.meas_q.qsize() == 6, 5.0)
+        d.run_loop(max_ticks=len(answered))
+        assert wait_until(lambda: len(got) == len(answered), 5.0)
+        assert got == answered and d.core.steps == len(answered)
+        sub.undeclare()
+    finally:
+        d.close()
 
 
 def test_query_without_a_controller_fails_clearly():
