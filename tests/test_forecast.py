@@ -99,3 +99,32 @@ def test_a_widened_box_holds_the_box_and_nearby_boxes_share_it():
 def test_each_window_is_announced_half_a_window_ahead():
     W = 0.25
     assert [announced_window(t, W) for t in (0.0, 0.1, 0.125, 0.2, 0.25, 0.37, 0.375)] == [0, 0, 1, 1, 1, 1, 2]
+
+
+def test_the_daemons_forecast_worker_survives_its_process_being_killed():
+    """A killed worker process is counted and named, and the next window is forecast by a new one."""
+    import os
+    import signal
+
+    from clients.live import wait_until
+    from schemas.scenario import OutgoingForecastConfig
+    from service.forecast import ForecastWorker
+
+    scn = load_scenario(FEAS)
+    fw = ForecastWorker(scn.model, 1e-4, 0, OutgoingForecastConfig(enabled=True), 1.0)
+    fw.start()
+    try:
+        fw.request(0, (1100.0, 1300.0, 0.0, 0.0), scn.controller)
+        assert wait_until(lambda: fw.result is not None and fw.result[0] == 0, 30.0)
+        assert fw.result[1].feasible and fw.computed == 1
+        for pid in list(fw._pool._processes):
+            os.kill(pid, signal.SIGKILL)
+        fw.request(1, (1000.0, 1400.0, 0.0, 0.0), scn.controller)
+        assert wait_until(lambda: fw.errors == 1, 30.0) and "BrokenProcessPool" in fw.last_error
+        fw.request(2, (1000.0, 1400.0, 0.0, 0.0), scn.controller)
+        assert wait_until(lambda: fw.result[0] == 2, 60.0)
+        assert fw.computed == 2 and fw.status()["window"] == 2
+        fw.request(3, (1100.0, 1300.0, 0.0, 0.0), scn.controller)  # window 0's box again: from the cache
+        assert wait_until(lambda: fw.result[0] == 3, 30.0) and fw.cache_hits == 1 and fw.computed == 2
+    finally:
+        fw.close()
