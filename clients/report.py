@@ -1,8 +1,10 @@
 """energyctl report: PNG figures like the paper's and a Markdown summary, for one log or two side by side.
 
 Figures: states.png (i, v with the +-2 % band, u, du/dt), energy.png (y_z vs y_ref, u_z),
-interaction.png (outgoing vs incoming interaction variable, with the feasibility bands when the
-log carries its scenario). Works on simulator logs (true plant state) and daemon logs (measured).
+interaction.png (outgoing vs incoming interaction variable, with the feasibility bands Z^{r,in} per window
+when the log carries its scenario, or, in a daemon's log, from its forecast events, together with the
+Z^{r,out} it forecast ahead of each window). Works on simulator logs (true plant state) and daemon logs
+(measured).
 """
 
 from __future__ import annotations
@@ -30,6 +32,13 @@ def load_series(path: str | Path) -> dict:
             if isinstance(v, int | float) and not isinstance(v, bool):
                 c.setdefault(k, []).append(float(v))
     series = {leaf: {k: np.asarray(v) for k, v in c.items()} for leaf, c in cols.items()}
+    forecasts = {}  # a daemon's forecast events by window (the newest, after a config set)
+    for m in s["messages"]:
+        if s["channels"][m.channel_id].topic.endswith("/events"):
+            ev = json.loads(m.data)
+            if ev.get("kind") == "forecast":
+                f = json.loads(ev["detail"])
+                forecasts[f["window"]] = f
     meta = {name: json.loads(m["json"]) for name, m in s["metadata"].items() if "json" in m}
     v_ref = 80.0
     for name in ("scenario", "config", "core"):
@@ -39,7 +48,7 @@ def load_series(path: str | Path) -> dict:
     if "meas" not in series and "plant" not in series:
         raise ReportError(f"{path}: no measurement or plant channel")
     return {"path": str(path), "name": Path(path).stem, "series": series, "meta": meta, "v_ref": v_ref,
-            "complete": s["complete"]}
+            "complete": s["complete"], "forecasts": forecasts}
 
 
 def state(log: dict) -> dict:
@@ -62,27 +71,31 @@ def summary_metrics(log: dict) -> dict:
 
 
 def feasibility_bands(log: dict):
-    """[(t0, t1, P_lo, P_hi, Q_lo, Q_hi)] from the log's scenario, or None."""
+    """[(t0, t1, P_lo, P_hi, Q_lo, Q_hi, forecast)] per window: Z^{r,in} and, from a daemon's log, its forecast
+    of Z^{r,out} made ahead of the window (forecast = (Qdot_lo, Qdot_hi, feasible), else None); from the log's
+    scenario (a simulation) or the daemon's forecast events; None if neither."""
+    if log.get("forecasts"):
+        W = log["meta"].get("config", {}).get("forecast_window_s", 1.0)
+        return [(k * W, (k + 1) * W, *f["z_in"], (f["Qdot_lo"], f["Qdot_hi"], f["feasible"]))
+                for k, f in sorted(log["forecasts"].items())]
     scn_d = log["meta"].get("scenario")
     if not scn_d:
         return None
     from schemas.scenario import Scenario
     from service.core import effective_gain
-    from service.feasibility import incoming_range, tau_prime
+    from service.feasibility import incoming_range, load_box, tau_prime
     from service.profiles import Profile
 
     scn = Scenario.model_validate(scn_d)
     load = Profile(scn.load, scn.base_dir)
     tp = tau_prime(scn.model.L_H, scn.model.R_ohm, effective_gain(scn.controller, scn.model))
-    W, m = scn.feasibility.window_s, scn.feasibility.forecast_margin
+    W = scn.feasibility.window_s
     bands = []
     k = 0
     while k * W < scn.timing.duration_s:
         t0, t1 = k * W, min((k + 1) * W, scn.timing.duration_s)
-        lo, hi, dlo, dhi = load.range_over(t0, t1)
-        span, dspan = max(abs(lo), abs(hi)) * m, max(abs(dlo), abs(dhi)) * m
-        bands.append((t0, t1, *incoming_range(lo - span, hi + span, dlo - dspan, dhi + dspan, tp,
-                                              scn.feasibility.literal_paper_range)))
+        box = load_box(*load.range_over(t0, t1), scn.feasibility.forecast_margin)
+        bands.append((t0, t1, *incoming_range(*box, tp, scn.feasibility.literal_paper_range), None))
         k += 1
     return bands
 
@@ -101,6 +114,7 @@ def report(paths: list[str], out_dir: str) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figs = []
+    n_bands: dict[str, int] = {}
 
     fig, ax = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
     for lg in logs:
@@ -146,10 +160,15 @@ def report(paths: list[str], out_dir: str) -> dict:
         any_bands = False
         for lg, color in zip(logs, ("tab:orange", "tab:purple"), strict=False):
             bands = feasibility_bands(lg)  # each log's own: tau' depends on its controller's gain
-            for j, (t0, t1, plo, phi, qlo, qhi) in enumerate(bands or []):
+            n_bands[lg["name"]] = len(bands or [])
+            for j, (t0, t1, plo, phi, qlo, qhi, fc) in enumerate(bands or []):
                 lab = f"Z^r,in range {lg['name']}" if j == 0 else None
                 ax[0].fill_between([t0, t1], plo, phi, color=color, alpha=0.12, label=lab)
                 ax[1].fill_between([t0, t1], qlo, qhi, color=color, alpha=0.12, label=lab)
+                if fc is not None:  # the forecast Qdot^r,out range: red where it was judged infeasible
+                    lab = f"Z^r,out forecast {lg['name']}" if j == 0 else None
+                    ax[1].hlines(fc[:2], t0, t1, colors=color if fc[2] else "red", linestyles="--", lw=0.9,
+                                 label=lab)
                 any_bands = True
         ax[1].set_yscale("symlog", linthresh=1e3)
         title = "outgoing vs incoming interaction variable" + (" with feasibility bands" if any_bands else "")
@@ -164,7 +183,8 @@ def report(paths: list[str], out_dir: str) -> dict:
         lines.append(f"| {name} | " + " | ".join(_fmt(m.get(k)) for k in keys) + " |")
     lines += ["", *(f"![{f}]({f})" for f in figs), ""]
     (out / "summary.md").write_text("\n".join(lines))
-    return {"out": str(out), "figures": figs, "summary": str(out / "summary.md"), "metrics": dict(metrics)}
+    return {"out": str(out), "figures": figs, "summary": str(out / "summary.md"), "metrics": dict(metrics),
+            "feasibility_windows": n_bands}
 
 
 def _finish(plt, fig, ax, ylabels: tuple[str, ...], title: str, path: Path) -> str:

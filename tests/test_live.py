@@ -63,6 +63,13 @@ def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
     assert ahead, [(w, m["t"]) for w, m in first.items()]
     for w in ahead:
         assert (first[w]["P_min"], first[w]["P_max"]) == (-boxes[w]["P_max"], -boxes[w]["P_min"])
+    # the report draws each window's Z^{r,in} and the forecast Z^{r,out} from those events
+    from clients.report import feasibility_bands, load_series
+
+    bands = feasibility_bands(load_series(res["daemon_log"]))
+    assert [b[0] for b in bands] == pytest.approx([0.0, W, 2 * W])
+    assert all(b[6] is not None and b[6][2] for b in bands)
+    assert [b[2:6] for b in bands] == [tuple(e["z_in"]) for e in sorted(events, key=lambda e: e["window"])]
 
 
 @pytest.fixture
