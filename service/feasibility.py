@@ -19,6 +19,7 @@ incoming range is a violation, recorded with its start time.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 
@@ -80,13 +81,16 @@ class FeasibilityMonitor:
 
     MAX_VIOLATIONS = 1000  # the first ones are kept; all are counted
 
-    def __init__(self, window_s: float, rel_tol: float = 1e-9, keep_windows: int | None = None):
-        """keep_windows: a long-running user (the daemon) keeps only the most recent windows."""
+    def __init__(self, window_s: float, rel_tol: float = 1e-9, keep_windows: int | None = None,
+                 keep_recent: int | None = None):
+        """keep_windows, keep_recent: a long-running user (the daemon) keeps only the most recent windows and
+        violations (its memory stays flat); otherwise the first MAX_VIOLATIONS are kept."""
         self.window_s = window_s
         self.rel_tol = rel_tol
         self.keep_windows = keep_windows
         self.windows: dict[int, WindowRange] = {}
-        self.violations: list[Violation] = []
+        self.violations: list[Violation] | deque[Violation] = (
+            [] if keep_recent is None else deque(maxlen=keep_recent))
         self._outside = {"P": False, "Qdot": False}
         self.count = 0
 
@@ -114,7 +118,7 @@ class FeasibilityMonitor:
         tol = self.rel_tol * max(abs(lo), abs(hi), 1.0)
         out = not (lo - tol <= x <= hi + tol)
         if out and not self._outside[name]:
-            if len(self.violations) < self.MAX_VIOLATIONS:
+            if len(self.violations) < self.MAX_VIOLATIONS or isinstance(self.violations, deque):
                 self.violations.append(Violation(t, name, x, lo, hi))
             self.count += 1
         self._outside[name] = out
