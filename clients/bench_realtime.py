@@ -31,9 +31,9 @@ def judge(res: dict) -> dict:
 
 
 def bench_realtime(scn, rates: list[float], delays: list[int], duration_s: float, progress=None,
-                   loop: dict | None = None) -> dict:
-    """loop: daemon loop settings over the realtime defaults (sample trigger, spin wait), e.g. {"wait": "block",
-    "catch_up": 4}."""
+                   loop: dict | None = None, nice: int | None = None) -> dict:
+    """loop: daemon loop settings over the realtime defaults (sample trigger, block wait), e.g. {"wait": "spin",
+    "catch_up": 4}; nice: controller and plant priority (default clients.live.REALTIME_NICE)."""
     from .live import run_live
 
     runs = []
@@ -41,13 +41,14 @@ def bench_realtime(scn, rates: list[float], delays: list[int], duration_s: float
         for d in delays:
             with tempfile.TemporaryDirectory() as tmp:
                 res = run_live(scn, lockstep=False, rate_hz=rate, out=None, duration_s=duration_s, controller_delay=d,
-                               workdir=tmp, loop=loop)
+                               workdir=tmp, loop=loop, nice=nice)
             row = {"rate_hz": rate, "delay_samples": d, **judge(res)}
             runs.append(row)
             if progress:
                 progress(row)
     ok = [r for r in runs if r["ok"]]
     best = max(ok, key=lambda r: r["rate_hz"]) if ok else None
-    return {"bench": "realtime", "scenario": scn.name, "duration_s": duration_s, "loop": loop or {}, "criteria": {
+    return {"bench": "realtime", "scenario": scn.name, "duration_s": duration_s, "loop": loop or {}, "nice": nice,
+        "criteria": {
         "v_band_pct": BAND_PCT, "overrun_pct_below": LIMIT_PCT, "missed_or_late_pct_below": LIMIT_PCT},
         "runs": runs, "highest_rate_hz": best["rate_hz"] if best else None, "at_best": best}

@@ -235,7 +235,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
         logs.mkdir(parents=True, exist_ok=True)
         res = run_live(scn, not args.realtime, rate, str(out), args.duration, args.delay, secure=args.secure,
-                       tls=args.tls)
+                       tls=args.tls, nice=args.nice)
         m = res["metrics"]
         print(metrics_table([([scn.name, f"{scn.controller.kind} over Zenoh"], m)], ["scenario", "controller"]))
         d = res.get("daemon", {}).get("loop", {})
@@ -298,7 +298,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         rates = [float(r) for r in (args.rates or "1000,2000,5000,10000").split(",")]
         delays = [int(x) for x in (args.delays or "1,2,3").split(",")]
         loop = {k: v for k, v in (("wait", args.wait), ("catch_up", args.catch_up)) if v is not None}
-        res = bench_realtime(scn, rates, delays, args.seconds or 2.0, loop=loop,
+        res = bench_realtime(scn, rates, delays, args.seconds or 2.0, loop=loop, nice=args.nice,
                              progress=lambda r: print(f"  {r['rate_hz']:g} Hz, delay {r['delay_samples']}: "
                                                       f"{'OK' if r['ok'] else 'no'} (dev {r['v_dev_after_50ms_pct']}, "
                                                       f"overruns {r['overrun_pct']:.2f} %, missed/late "
@@ -548,6 +548,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"energyctl {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
 
+    def nice_opt(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--nice", type=int, default=None, metavar="N",
+                        help="realtime: nice value of controller and plant (default -10: above the load and the "
+                             "recorder and forecast processes; 0 = no raise; raising needs CAP_SYS_NICE)")
+
     def scen_opts(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--set", action="append", metavar="dotted.key=value",
                         help="override a scenario field, e.g. --set timing.delay_samples=2 "
@@ -612,6 +617,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--duration", type=float, help="seconds to run (default: the scenario's)")
     d.add_argument("--delay", type=int, help="realtime: samples between a measurement and the instant its command "
                                              "acts (plant schedule = controller prediction; default 1)")
+    nice_opt(d)
     scen_opts(d)
     d.set_defaults(func=cmd_demo)
 
@@ -635,10 +641,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-n", type=int, default=None,
                    help="latency: round trips per target (default 3000); tick: ticks (default 20000)")
     b.add_argument("--wait", choices=["block", "spin"], default=None,
-                   help="latency, realtime: the daemon's wait for samples (default: block for latency, spin for "
-                        "realtime)")
+                   help="latency, realtime: the daemon's wait for samples (default: block)")
     b.add_argument("--catch-up", type=int, default=None, metavar="N",
                    help="realtime: answer up to N queued samples in order (loop.catch_up; default 1, the newest)")
+    nice_opt(b)
     b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
     scen_opts(b)
     b.add_argument("--repeat", type=int, default=3)

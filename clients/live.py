@@ -16,6 +16,7 @@ from schemas.component import ComponentConfig, LoadPeerConfig, PlantPeerConfig, 
 from schemas.scenario import Scenario
 
 SHUTDOWN_GRACE_S = 5
+REALTIME_NICE = -10  # realtime stacks: controller and plant above everything else on the machine
 
 
 def install_stop_handlers(stop: threading.Event) -> None:
@@ -31,11 +32,23 @@ def install_stop_handlers(stop: threading.Event) -> None:
     signal.signal(signal.SIGTERM, handler)
 
 
-def run_daemon(cfg: ComponentConfig, stats_out: str | None = None) -> int:
-    from service.daemon import Daemon
+def start_process(cfg, command: str) -> threading.Event:
+    """First thing in energyctl run/plant/load: the stop event, its signal handlers, and the configured priority
+    (before any thread exists, so that Zenoh's threads and spawned processes inherit it)."""
+    from service.priority import set_nice
 
     stop = threading.Event()
     install_stop_handlers(stop)
+    refused = set_nice(cfg.nice)
+    if refused:
+        print(f"energyctl {command}: {refused}", file=sys.stderr, flush=True)
+    return stop
+
+
+def run_daemon(cfg: ComponentConfig, stats_out: str | None = None) -> int:
+    from service.daemon import Daemon
+
+    stop = start_process(cfg, "run")
     d = Daemon(cfg)
     d.open()
     loop = threading.Thread(target=d.run_loop, name="loop", daemon=True)
@@ -63,8 +76,7 @@ def run_daemon(cfg: ComponentConfig, stats_out: str | None = None) -> int:
 def run_plant_cmd(cfg: PlantPeerConfig, json_out: bool) -> int:
     from .peers import run_plant
 
-    stop = threading.Event()
-    install_stop_handlers(stop)
+    stop = start_process(cfg, "plant")
     try:
         res = run_plant(cfg, stop)
     except RuntimeError as e:
@@ -90,8 +102,7 @@ def _plant_text(res: dict) -> str:
 def run_load_cmd(cfg: LoadPeerConfig) -> int:
     from .peers import run_load
 
-    stop = threading.Event()
-    install_stop_handlers(stop)
+    stop = start_process(cfg, "load")
     res = run_load(cfg, stop)
     print(json.dumps(res), flush=True)
     return 0
@@ -99,7 +110,8 @@ def run_load_cmd(cfg: LoadPeerConfig) -> int:
 
 def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz: float | None = None,
                           controller_delay: int | None = None, out: str | None = None,
-                          duration_s: float | None = None, loop: dict | None = None) -> tuple[dict, dict, dict]:
+                          duration_s: float | None = None, loop: dict | None = None,
+                          nice: int | None = None) -> tuple[dict, dict, dict]:
     """Component, plant and load configs (as dicts) for one scenario on one loopback endpoint.
 
     The controller listens; plant and load connect to it. The controller ticks on each measurement (the
@@ -107,6 +119,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
     delay and the controller compensates exactly that, as in ``energyctl sim``. Realtime: the plant
     applies each command at the sampling instant after it arrives (one sample of delay while the round
     trip is shorter than a period); the controller compensates ``controller_delay`` samples (default 1).
+    Realtime also runs controller and plant at nice ``nice`` (default REALTIME_NICE), above the load and the
+    background processes, and the controller blocks on its samples (spinning took a core from the plant).
     """
     tm = scn.timing
     rate = rate_hz or tm.control_rate_hz
@@ -115,8 +129,7 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
     comp = {"id": "source", "zenoh": zl, "model": scn.model.model_dump(), "controller": scn.controller.model_dump(),
             "neighbours": ["load"], "plant_id": "source",
             "delay_samples": tm.delay_samples if lockstep else (1 if controller_delay is None else controller_delay),
-            "loop": {"rate_hz": rate, "trigger": "sample", "lockstep": lockstep,
-                     "wait": "block" if lockstep else "spin", **(loop or {})},
+            "loop": {"rate_hz": rate, "trigger": "sample", "lockstep": lockstep, "wait": "block", **(loop or {})},
             "forecast_window_s": scn.feasibility.window_s, "interaction_rate_hz": 100.0}
     comp["controller"]["delay_compensation_samples"] = None
     if out:
@@ -131,6 +144,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
              "realtime_apply_delay_samples": max(1, comp["delay_samples"])}
     if scn.disturbance is not None:
         plant["disturbance"] = scn.disturbance.model_dump()
+    if not lockstep:
+        comp["nice"] = plant["nice"] = REALTIME_NICE if nice is None else nice
     load = {"id": "load", "zenoh": zc, "load": scn.load.model_dump(), "plant_id": "source",
             "pacing": "lockstep" if lockstep else "realtime", "rate_hz": 200.0,
             "window_s": scn.feasibility.window_s, "forecast_margin": scn.feasibility.forecast_margin,
@@ -241,7 +256,7 @@ def _exit_on_term(signum, frame):
 
 def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | None, duration_s: float | None,
              controller_delay: int | None = None, workdir: str | None = None, timeout_s: float = 300.0,
-             secure: bool = False, tls: bool = False, loop: dict | None = None) -> dict:
+             secure: bool = False, tls: bool = False, loop: dict | None = None, nice: int | None = None) -> dict:
     """Start controller, load and plant on a free loopback port; wait for the plant; stop the rest.
 
     ``secure``: the three connect as Zenoh clients, each with its own credentials, to a router that
@@ -250,7 +265,8 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
     from service.bus import free_tcp_port
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    comp, plant, load = configs_from_scenario(scn, ep, lockstep, rate_hz, controller_delay, out, duration_s, loop)
+    comp, plant, load = configs_from_scenario(scn, ep, lockstep, rate_hz, controller_delay, out, duration_s, loop,
+                                              nice)
     tmp = Path(workdir or tempfile.mkdtemp(prefix="energyctl-"))
     if secure:
         from .secure import client_zenoh, write_profile

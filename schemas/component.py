@@ -60,6 +60,11 @@ class Named(Strict):
     id: str = Field(description="component id: letters, digits, '_' and '-'")
     prefix: str = Field(default="energyctl", description="key-expression prefix")
     zenoh: ZenohConfig = ZenohConfig()
+    nice: Annotated[int, Field(ge=-20, le=19)] | None = Field(
+        default=None, description="scheduling priority (Unix nice value) of the whole process, Zenoh's threads "
+                                  "included, set before anything starts; below 0 needs CAP_SYS_NICE (refused: one "
+                                  "line on stderr, and it runs at the priority it was started with). Its recorder "
+                                  "and forecast processes always run below it (service.priority)")
 
     @field_validator("id")
     @classmethod
@@ -85,8 +90,9 @@ class LoopConfig(Strict):
     lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
     spin_margin_s: Annotated[float, Field(ge=0, le=0.01)] = 2e-4
     wait: Literal["block", "spin"] = Field(
-        default="block", description="sample trigger: block on the queue (frees the core) or spin on it (lower "
-                                     "wake-up latency on VMs whose idle vCPUs halt, costs a whole core)")
+        default="block", description="sample trigger: block on the queue (frees the core), or spin on it (lower "
+                                     "wake-up latency on an idle machine, but it costs a whole core, which the "
+                                     "plant and Zenoh's threads then lack on a small one)")
     catch_up: Annotated[int, Field(ge=1, le=64)] = Field(
         default=1, description="sample trigger: when several samples queued up, answer up to this many of the "
                                "newest, oldest first (each gets its command; older ones count as missing); 1 = only "

@@ -145,7 +145,7 @@ class Daemon:
         self._stop = threading.Event()
         self._last_seq = -1
         self._z_seq = 0
-        self.feas = FeasibilityMonitor(cfg.forecast_window_s, keep_windows=100)
+        self.feas = FeasibilityMonitor(cfg.forecast_window_s, keep_windows=100, keep_recent=5)
         self._tau_p = tau_prime(cfg.model.L_H, cfg.model.R_ohm, effective_gain(cfg.controller, cfg.model))
         self._z_every = max(1, round(cfg.loop.rate_hz / cfg.interaction_rate_hz))
         self._window = -1
@@ -201,8 +201,7 @@ class Daemon:
         for t in self._threads:
             t.start()
         self.state = "active"
-        # alive last: peers that wait for the token (the plant) start when everything here is ready
-        self.token = s.liveliness().declare_token(key(c.prefix, c.id, "alive"))
+        self.token = None  # declared by the loop once it is ready to tick (run_loop)
 
     def _open_recorder(self):
         from datetime import UTC, datetime
@@ -241,7 +240,8 @@ class Daemon:
             self.recorder.close()
         if self.session is not None:
             try:
-                self.token.undeclare()
+                if self.token is not None:
+                    self.token.undeclare()
             except Exception:  # noqa: BLE001 - closing anyway
                 pass
             self.session.close()  # also ends the query threads' blocking recv()
@@ -255,8 +255,13 @@ class Daemon:
 
     # ---------------------------------------------------------------- loop
     def run_loop(self, max_ticks: int | None = None) -> None:
-        gc.collect()
+        gc.collect()  # tens of ms with everything imported: before the first sample, not during it
         gc.freeze()
+        if self.token is None and self.session is not None:
+            # alive last: peers that wait for the token (the plant) start only when everything here is ready,
+            # the loop included (announced from open(), the first 5-30 samples of a realtime plant were missed)
+            c = self.cfg
+            self.token = self.session.liveliness().declare_token(key(c.prefix, c.id, "alive"))
         try:
             if self.cfg.loop.trigger == "clock":
                 self._clock_loop(max_ticks)
@@ -327,7 +332,7 @@ class Daemon:
         while not stop.is_set():
             if self._pending is not None or self._pending_state is not None:
                 self._apply_pending()
-            if spin:  # poll the ring of one: filled on Zenoh's side, no GIL needed to fill it
+            if spin:  # poll the ring: filled on Zenoh's side, no GIL needed to fill it
                 try:
                     m = sub.try_recv()
                 except Exception:  # noqa: BLE001 - the subscriber was closed: shutting down
@@ -402,7 +407,8 @@ class Daemon:
             nb.ranges[w & 1] = (w, v[8:12])
             self._nb_news = True
             if w > self._fc_asked and self.forecaster is not None and (box := self._box(w)) is not None:
-                self.forecaster.request(w, box, self.core.cfg)  # whatever the loop's state: a feed-forward check
+                # whatever the loop's state: a feed-forward check
+                self.forecaster.request(w, box, self.core.cfg, self.config_version)
                 self._fc_asked = w
             nb.rx_ns = now
             nb.count += 1
@@ -623,7 +629,7 @@ class Daemon:
                                    "lagging": nb.lagging,
                                    "P_r_out": nb.P} for nb in self.neighbours},
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
-                            "recent": [v.__dict__ for v in self.feas.violations[-5:]],
+                            "recent": [v.__dict__ for v in self.feas.violations],
                             "forecast": self.forecaster.status() if self.forecaster is not None else None},
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",

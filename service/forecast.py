@@ -37,6 +37,7 @@ from schemas.scenario import CircuitParams, ControllerConfig, PlantConfig, Sourc
 from .core import make_core
 from .feasibility import incoming_range
 from .plant import RLCPlant, load_current
+from .priority import FORECAST_NICE, background
 from .types import Incoming, Sample
 
 FORECAST_STEP_S = 5e-5  # plant integration step inside the forecast (s): 2 RK4 steps per 10 kHz period
@@ -252,10 +253,13 @@ class ForecastWorker:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=background, initargs=(FORECAST_NICE,))
 
-    def request(self, window: int, box: tuple[float, float, float, float], controller: ControllerConfig) -> None:
-        self._req = (window, box, controller)
+    def request(self, window: int, box: tuple[float, float, float, float], controller: ControllerConfig,
+                version: int = 0) -> None:
+        """version: the controller config's version (the cache key; a config set bumps it)."""
+        self._req = (window, box, controller, version)
         self._ev.set()
 
     def close(self) -> None:
@@ -291,9 +295,9 @@ class ForecastWorker:
             req, self._req = self._req, None
             if self._stop or req is None:
                 continue
-            w, box, ctl = req
+            w, box, ctl, version = req
             wide = widen_to_grid(box, self.quantum)
-            key = (wide, ctl.model_dump_json())
+            key = (wide, version)
             tau_p = tau_prime(self.model.L_H, self.model.R_ohm, effective_gain(ctl, self.model))
             f = self._cache.get(key)
             if f is not None:

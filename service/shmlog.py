@@ -218,7 +218,10 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
     import importlib
     from queue import Empty
 
+    from service.priority import RECORDER_NICE, background
     from service.recorder import McapFile
+
+    background(RECORDER_NICE)  # below the process it records: that one has a loop to keep
 
     # do not hold the recorded process's stdout/stderr: whoever reads those pipes must see them close when
     # that process ends (errors go back through ``result``)

@@ -280,9 +280,10 @@ def test_two_controlled_components_on_one_network_each_reproduce_their_own_run(t
     assert rep["metrics"]["plant1"]["v_min"] == results[1]["metrics"]["v_min"]
 
 
-def test_the_daemon_is_alive_only_when_its_recorder_is_writing(tmp_path):
+def test_the_daemon_is_alive_only_when_its_recorder_is_writing_and_its_loop_runs(tmp_path):
     """The liveliness token is the plant's start signal: it must not appear while the recorder process is still
-    starting (importing Python for about a second, which took the CPU from the first samples)."""
+    starting (importing Python for about a second, which took the CPU from the first samples), nor before the
+    loop thread is ready to tick (its start-up garbage collection alone missed realtime samples)."""
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     comp, _p, _l = configs_from_scenario(scn, ep, lockstep=False, rate_hz=1000.0)
@@ -292,6 +293,13 @@ def test_the_daemon_is_alive_only_when_its_recorder_is_writing(tmp_path):
         d.open()
         assert d.recorder is not None and d.recorder._ready.is_set()  # open() waited for the writer ...
         assert len(list(tmp_path.glob("source-*.mcap"))) == 1  # ... which had created the file
-        assert d.token is not None  # and only then announced the daemon
+        assert d.token is None  # but the loop is not running yet: not alive
+        loop = threading.Thread(target=d.run_loop, daemon=True)
+        loop.start()
+        assert wait_until(lambda: d.token is not None, 5.0)  # announced by the running loop
+        d.stop()
+        loop.join(5.0)
+        assert not loop.is_alive()
     finally:
+        d.stop()
         d.close()

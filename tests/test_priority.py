@@ -1,0 +1,84 @@
+"""Process priorities (service/priority.py): control above, the recorder and forecast processes below."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+from conftest import ROOT, SCENARIOS
+
+from schemas.codec import MEAS
+from schemas.scenario import OutgoingForecastConfig, load_scenario
+from service import priority
+from service.priority import FORECAST_NICE, RECORDER_NICE
+
+
+def nice_of(pid: int) -> int:
+    return os.getpriority(os.PRIO_PROCESS, pid)
+
+
+def test_background_processes_run_below_the_process_that_starts_them(tmp_path):
+    """The recorder's writer and the forecast worker lower themselves to their own level whatever their parent
+    runs at (spawned processes inherit the parent's nice value, which a realtime daemon raises)."""
+    from service.forecast import ForecastWorker
+    from service.shmlog import RingRecorder
+
+    rec = RingRecorder(tmp_path / "x.mcap", {"m": ("energyctl.Measurement", MEAS)}, {})
+    fw = ForecastWorker(load_scenario(SCENARIOS / "paper-feasibility.toml").model, 1e-4, 0,
+                        OutgoingForecastConfig(enabled=True), 1.0)
+    try:
+        assert rec.wait_ready()
+        fw.start()  # returns once its process has run its initializer and answered
+        parent = nice_of(0)
+        assert nice_of(rec.pid) == max(parent, RECORDER_NICE)
+        (pid,) = list(fw._pool._processes)
+        assert nice_of(pid) == max(parent, FORECAST_NICE) and nice_of(pid) > nice_of(rec.pid)
+    finally:
+        fw.close()
+        rec.close()
+
+
+def test_a_configured_nice_value_reaches_the_threads_started_after_it():
+    """set_nice in the main thread before anything starts: a thread started afterwards (as Zenoh's are) runs at
+    that priority too (Linux keeps nice per thread and a new thread inherits its creator's)."""
+    code = ("import os, threading\n"
+            "from service.priority import set_nice\n"
+            "assert set_nice(5) is None\n"
+            "out = []\n"
+            "t = threading.Thread(target=lambda: out.append(os.getpriority(os.PRIO_PROCESS, 0)))\n"
+            "t.start(); t.join()\n"
+            "print(os.getpriority(os.PRIO_PROCESS, 0), out[0])\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["5", "5"]
+
+
+def test_a_refused_priority_is_said_and_not_fatal(monkeypatch):
+    """Without CAP_SYS_NICE raising priority fails: set_nice says why in one line and leaves the priority."""
+    before = nice_of(0)
+
+    def refuse(*_a):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(priority.os, "setpriority", refuse)
+    msg = priority.set_nice(before - 5)
+    assert msg is not None and "CAP_SYS_NICE" in msg and f"running at nice {before}" in msg
+    assert nice_of(0) == before
+    assert priority.set_nice(None) is None and priority.set_nice(before) is None  # nothing to do: no message
+
+
+def test_run_says_once_that_it_could_not_raise_its_priority():
+    """energyctl run/plant/load where raising priority is refused (no CAP_SYS_NICE; simulated, since the tests
+    run as root): one stderr line naming the value, and the process goes on at its own priority."""
+    code = ("import os\n"
+            "def refuse(*a): raise PermissionError(1, 'Operation not permitted')\n"
+            "os.setpriority = refuse\n"
+            "from clients.live import start_process\n"
+            "from schemas.component import ComponentConfig\n"
+            "stop = start_process(ComponentConfig(id='x', nice=-5), 'run')\n"
+            "print(os.getpriority(os.PRIO_PROCESS, 0), stop.is_set())\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.count("energyctl run: cannot set nice -5") == 1
+    assert res.stdout.split() == [str(nice_of(0)), "False"]
