@@ -284,9 +284,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         res = bench_soak(args.minutes, rate_hz=args.rate)
     elif args.what == "recorder":
+        from service.priority import set_nice
+
         from .bench_recorder import bench_recorder
 
+        refused = set_nice(args.nice)  # the loop thread (and the writer it spawns, which drops below it)
+        if refused:
+            print(f"energyctl bench: {refused}", file=sys.stderr)
         res = bench_recorder(seconds=args.seconds or 10.0)
+        res["nice"] = args.nice
     elif args.what == "tick":
         from .bench_tick import bench_tick
 
@@ -551,7 +557,8 @@ def build_parser() -> argparse.ArgumentParser:
     def nice_opt(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--nice", type=int, default=None, metavar="N",
                         help="realtime: nice value of controller and plant (default -10: above the load and the "
-                             "recorder and forecast processes; 0 = no raise; raising needs CAP_SYS_NICE)")
+                             "recorder and forecast processes; 0 = no raise); recorder: of the paced loop (default: "
+                             "as started). Raising needs CAP_SYS_NICE")
 
     def scen_opts(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--set", action="append", metavar="dotted.key=value",

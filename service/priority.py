@@ -41,3 +41,4 @@ def background(level: int) -> None:
     now = os.getpriority(os.PRIO_PROCESS, 0)
     if level > now:
         os.setpriority(os.PRIO_PROCESS, 0, level)
+

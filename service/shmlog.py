@@ -35,6 +35,9 @@ _PAYLOAD = 1 + _SLOT_HDR.size
 
 
 _IDX = struct.Struct("<Q")
+# the writer's nap when the ring is empty: long enough that its wake-ups (200/s) do not disturb the loop's core,
+# short against the ring (131 072 slots = 4 s of the daemon's 32 k messages/s)
+IDLE_SLEEP_S = 0.005
 
 
 class RingRecorder:
@@ -350,7 +353,7 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
                             pass
                     break
                 continue
-            time.sleep(0.0005)
+            time.sleep(IDLE_SLEEP_S)
     except Exception as e:  # noqa: BLE001 - report, keep what was written
         error = f"{type(e).__name__}: {e}"
         buf[17] = 1
