@@ -25,7 +25,7 @@ from array import array
 from multiprocessing import shared_memory
 from pathlib import Path
 
-from schemas.codec import Codec
+from schemas.codec import VERSION, Codec
 
 SLOT = 128
 _HDR = struct.Struct("<QQQ")  # (unused), messages taken by the writer (statistics only), stop flag byte 16,
@@ -51,14 +51,17 @@ class RingRecorder:
         self._shm = shared_memory.SharedMemory(create=True, size=_HDR.size + slots * SLOT)
         self._shm.buf[:] = bytes(self._shm.size)  # touch every page now: no RSS growth while the ring fills
         _HDR.pack_into(self._shm.buf, 0, 0, 0, 0)
-        self._codecs: dict[str, tuple[int, Codec]] = {}
+        # per topic: (topic id, one struct for the slot header and the payload: flag byte excluded, magic)
+        self._codecs: dict[str, tuple[int, struct.Struct, int]] = {}
         spec = []
         for k, (topic, (schema, codec)) in enumerate(topics.items()):
             spec.append((topic, schema, codec.model.__module__ + ":" + codec.model.__name__ if codec else None,
                          codec.magic if codec else 0))
             if codec is not None:
                 assert _PAYLOAD + codec.size <= SLOT, topic
-                self._codecs[topic] = (k, codec)
+                # "<Bd" then the codec's own "<BB..." without its byte-order mark: the same bytes as packing the
+                # header and the payload one after the other, in one call
+                self._codecs[topic] = (k, struct.Struct(_SLOT_HDR.format + codec.struct.format[1:]), codec.magic)
         self._events_topic = next((t for t, (s, c) in topics.items() if c is None), None)
         ctx = mp.get_context("spawn")
         self._events = ctx.Queue()
@@ -135,8 +138,7 @@ class RingRecorder:
         if buf[off]:  # the writer has not emptied this slot: the ring is full
             self.drops[topic] = self.drops.get(topic, 0) + 1
             return
-        _SLOT_HDR.pack_into(buf, off + 1, ent[0], t)
-        ent[1].struct.pack_into(buf, off + _PAYLOAD, ent[1].magic, 1, *values)
+        ent[1].pack_into(buf, off + 1, ent[0], t, ent[2], VERSION, *values)
         buf[off] = 1  # publish: the payload is complete
         self._w = w + 1
 

@@ -91,3 +91,16 @@ def test_overrides_only_raise_scenario_error(overrides):
         scenario_from_dict({}, overrides)
     except ScenarioError:
         pass
+
+
+def test_finite_values_whose_sum_overflows_still_decode_and_the_first_non_finite_is_named():
+    """decode checks finiteness with one sum first; a sum that overflows (finite values) must not reject, and
+    opposite infinities (their sum NaN) are named by the first of them in field order."""
+    big = MEAS.encode(1, 0.5, 1e308, 1e308, 1e308, 1e308)
+    assert MEAS.decode(big)[2:] == (1e308, 1e308, 1e308, 1e308)
+    try:
+        MEAS.decode(MEAS.encode(1, 0.5, math.inf, 80.0, 80.0, -math.inf))
+    except DecodeError as e:
+        assert e.field == "i"
+    else:
+        raise AssertionError("inf accepted")
