@@ -120,7 +120,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
     applies each command at the sampling instant after it arrives (one sample of delay while the round
     trip is shorter than a period); the controller compensates ``controller_delay`` samples (default 1).
     Realtime also runs controller and plant at nice ``nice`` (default REALTIME_NICE), above the load and the
-    background processes, and the controller blocks on its samples (spinning took a core from the plant).
+    background processes, the controller blocks on its samples (spinning took a core from the plant), and it
+    falls back to the measured load power while the load has not been heard from.
     """
     tm = scn.timing
     rate = rate_hz or tm.control_rate_hz
@@ -146,6 +147,10 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
         plant["disturbance"] = scn.disturbance.model_dump()
     if not lockstep:
         comp["nice"] = plant["nice"] = REALTIME_NICE if nice is None else nice
+        # until the load's first message arrives (it follows the plant's clock, so a few ms after the first
+        # sample) and whenever it goes quiet: regulate to the load power measured at the port, not hold du/dt = 0
+        # (held, the LC pair rang open loop from i = 1 A and the law took over from 35 A, sometimes diverging)
+        comp["local_reference_W"] = "measured"
     load = {"id": "load", "zenoh": zc, "load": scn.load.model_dump(), "plant_id": "source",
             "pacing": "lockstep" if lockstep else "realtime", "rate_hz": 200.0,
             "window_s": scn.feasibility.window_s, "forecast_margin": scn.feasibility.forecast_margin,
