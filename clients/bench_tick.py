@@ -65,7 +65,8 @@ def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: di
                 hooks[k](d)
             payload = MEAS.encode(k, tr["t"][k], tr["i_meas"][k], tr["v_meas"][k], tr["u_meas"][k],
                                   tr["i_load_meas"][k])
-            nb.P, nb.P_dot, nb.rx_ns, nb.count = -tr["P_r_in"][k], -tr["P_r_in_dot"][k], now(), k + 1
+            # the neighbour's message for this very sample (stamped with its time, as in lockstep)
+            nb.P, nb.P_dot, nb.t, nb.rx_ns, nb.count = -tr["P_r_in"][k], -tr["P_r_in_dot"][k], tr["t"][k], now(), k + 1
             t0 = now()
             d._tick(payload, t0)
             t1 = now()

@@ -17,6 +17,7 @@ from schemas.scenario import Scenario
 
 SHUTDOWN_GRACE_S = 5
 REALTIME_NICE = -10  # realtime stacks: controller and plant above everything else on the machine
+REALTIME_STEP_V = 20.0  # realtime stacks: the controller's slew limit, V per control period
 
 
 def install_stop_handlers(stop: threading.Event) -> None:
@@ -151,6 +152,11 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
         # sample) and whenever it goes quiet: regulate to the load power measured at the port, not hold du/dt = 0
         # (held, the LC pair rang open loop from i = 1 A and the law took over from 35 A, sometimes diverging)
         comp["local_reference_W"] = "measured"
+        # at most REALTIME_STEP_V of source-voltage change per period, as the paper scenario's 2e5 V/s is at 10 kHz:
+        # at 1 kHz that slew limit allowed 200 V per period, and one late command during the start-up transient
+        # was answered with +-50 kV/s and diverged; 20 V per period regulates as before offline (README)
+        lim = comp["controller"]["limits"]
+        lim["du_dt_max_V_per_s"] = min(lim["du_dt_max_V_per_s"], REALTIME_STEP_V * rate)
     load = {"id": "load", "zenoh": zc, "load": scn.load.model_dump(), "plant_id": "source",
             "pacing": "lockstep" if lockstep else "realtime", "rate_hz": 200.0,
             "window_s": scn.feasibility.window_s, "forecast_margin": scn.feasibility.forecast_margin,

@@ -135,6 +135,18 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                 if c is not None:
                     inbox[c[0]] = c[2]
 
+        def await_answer(k: int) -> float | None:
+            """Wait (up to lockstep_timeout_s) for the command answering sample k: its du/dt, None if none came."""
+            deadline = now_ns() + timeout_ns
+            while True:
+                try:
+                    item = cmd_q.get(timeout=max(1e-6, (deadline - now_ns()) * 1e-9))
+                except Empty:
+                    return None
+                c = take(item)
+                if c is not None and c[0] == k:
+                    return c[2]
+
         for k in range(N):
             if stop.is_set():
                 break
@@ -150,19 +162,23 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             counters["samples"] += 1
             du_for_k = math.nan
             if lockstep:
-                deadline = now_ns() + timeout_ns
-                while True:
-                    try:
-                        item = cmd_q.get(timeout=max(1e-6, (deadline - now_ns()) * 1e-9))
-                    except Empty:
-                        counters["timeouts"] += 1
-                        r_latest = 0.0  # no answer: hold the source voltage
-                        break
-                    c = take(item)
-                    if c is not None and c[0] == k:
-                        r_latest = du_for_k = c[2]
-                        break
+                r = await_answer(k)
+                if r is None:
+                    counters["timeouts"] += 1
+                    r_latest = 0.0  # no answer: hold the source voltage
+                else:
+                    r_latest = du_for_k = r
             else:
+                if k == 0:
+                    # arm: the converter is enabled by the controller's first answer, and the sampling clock
+                    # starts then (the stack's first round trips take 1-3 ms while its background work starts
+                    # up; on the clock they left the first periods uncontrolled and the LC pair ringing)
+                    r = await_answer(0)
+                    if r is None:
+                        counters["timeouts"] += 1
+                    else:
+                        inbox[0] = r
+                    next_ns = now_ns() + period_ns
                 # fixed schedule, as a digital modulator: the command answering sample k - d acts over this
                 # period; one that has not arrived by now is too late (dropped when it comes) and the
                 # source holds its voltage (du/dt = 0) rather than keep ramping

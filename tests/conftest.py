@@ -66,6 +66,7 @@ def daemon_by_hand():
     comp["neighbour_stale_s"] = 10.0
     comp["loop"]["trigger"] = "clock"
     comp["forecast"] = {"enabled": False}  # no worker process: these tests feed samples, not windows
+    comp.pop("local_reference_W")  # the daemon's own default (hold), not the realtime stacks' "measured"
     d = Daemon(config_from_dict(ComponentConfig, comp))
     d.open()
     nb = d.neighbours[0]
