@@ -18,6 +18,14 @@ def nice_of(pid: int) -> int:
     return os.getpriority(os.PRIO_PROCESS, pid)
 
 
+def in_new_process(lines: list[str]) -> subprocess.CompletedProcess:
+    """Run Python lines in a fresh interpreter (priorities set there do not leak into the test process)."""
+    res = subprocess.run([sys.executable, "-c", "\n".join(lines)], cwd=ROOT, capture_output=True, text=True,
+                         timeout=30)
+    assert res.returncode == 0, res.stderr
+    return res
+
+
 def test_background_processes_run_below_the_process_that_starts_them(tmp_path):
     """The recorder's writer and the forecast worker lower themselves to their own level whatever their parent
     runs at (spawned processes inherit the parent's nice value, which a realtime daemon raises)."""
@@ -42,15 +50,13 @@ def test_background_processes_run_below_the_process_that_starts_them(tmp_path):
 def test_a_configured_nice_value_reaches_the_threads_started_after_it():
     """set_nice in the main thread before anything starts: a thread started afterwards (as Zenoh's are) runs at
     that priority too (Linux keeps nice per thread and a new thread inherits its creator's)."""
-    code = ("import os, threading\n"
-            "from service.priority import set_nice\n"
-            "assert set_nice(5) is None\n"
-            "out = []\n"
-            "t = threading.Thread(target=lambda: out.append(os.getpriority(os.PRIO_PROCESS, 0)))\n"
-            "t.start(); t.join()\n"
-            "print(os.getpriority(os.PRIO_PROCESS, 0), out[0])\n")
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=30)
-    assert res.returncode == 0, res.stderr
+    res = in_new_process(["import os, threading",
+                          "from service.priority import set_nice",
+                          "assert set_nice(5) is None",
+                          "out = []",
+                          "t = threading.Thread(target=lambda: out.append(os.getpriority(os.PRIO_PROCESS, 0)))",
+                          "t.start(); t.join()",
+                          "print(os.getpriority(os.PRIO_PROCESS, 0), out[0])"])
     assert res.stdout.split() == ["5", "5"]
 
 
@@ -71,14 +77,12 @@ def test_a_refused_priority_is_said_and_not_fatal(monkeypatch):
 def test_run_says_once_that_it_could_not_raise_its_priority():
     """energyctl run/plant/load where raising priority is refused (no CAP_SYS_NICE; simulated, since the tests
     run as root): one stderr line naming the value, and the process goes on at its own priority."""
-    code = ("import os\n"
-            "def refuse(*a): raise PermissionError(1, 'Operation not permitted')\n"
-            "os.setpriority = refuse\n"
-            "from clients.live import start_process\n"
-            "from schemas.component import ComponentConfig\n"
-            "stop = start_process(ComponentConfig(id='x', nice=-5), 'run')\n"
-            "print(os.getpriority(os.PRIO_PROCESS, 0), stop.is_set())\n")
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=30)
-    assert res.returncode == 0, res.stderr
+    res = in_new_process(["import os",
+                          "def refuse(*a): raise PermissionError(1, 'Operation not permitted')",
+                          "os.setpriority = refuse",
+                          "from clients.live import start_process",
+                          "from schemas.component import ComponentConfig",
+                          "stop = start_process(ComponentConfig(id='x', nice=-5), 'run')",
+                          "print(os.getpriority(os.PRIO_PROCESS, 0), stop.is_set())"])
     assert res.stderr.count("energyctl run: cannot set nice -5") == 1
     assert res.stdout.split() == [str(nice_of(0)), "False"]
