@@ -40,9 +40,9 @@ def wait_alive(session, key_expr: str, timeout_s: float, stop: threading.Event) 
 def matched(pub, timeout_s: float, stop: threading.Event) -> bool:
     """Block until the publisher's puts are routed to a subscriber.
 
-    A peer's liveliness token can be seen here before its subscription is (a peer answers a liveliness query
-    from what it already knows), and then the first samples went nowhere: a realtime plant started with its
-    first periods uncontrolled (sample 0 answered in 1 of 5 runs; 3 of 4 with this wait)."""
+    A peer's liveliness token can be seen here before its subscription is routed (a peer answers a liveliness
+    query from what it already knows); a sample published before then goes nowhere. (The realtime arm on the
+    first answer, in run_plant, is what made sample 0 reliably answered; this only rules out the race.)"""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and not stop.is_set():
         if pub.matching_status.matching:
