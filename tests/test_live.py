@@ -324,3 +324,51 @@ def test_the_neighbours_power_is_carried_forward_to_the_samples_time_by_its_rate
     assert seen[0] == (-1200.0, -2.0e4)  # same instant: exactly the message
     assert seen[1][0] == pytest.approx(-(1200.0 + 2.0e4 * 0.003), rel=1e-12)  # 3 ms later: 1260 W
     assert len(seen) == 4 and seen[2][0] == -1200.0 and seen[3][0] == -1200.0  # not extrapolated
+
+
+def test_a_realtime_plant_starts_its_clock_at_the_controllers_first_answer():
+    """Realtime pacing arms on the answer to sample 0 (a converter enabled by its controller): a controller that
+    takes 150 ms to give it gets sample 1 one period after that answer, and no period before it is counted late
+    missing; without the arm, sample 1 went out a period after sample 0, long before its answer."""
+    import time
+
+    from clients.peers import run_plant
+    from schemas.component import PlantPeerConfig
+
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    _c, plant, _l = configs_from_scenario(scn, ep, lockstep=False, rate_hz=1000.0, duration_s=0.02)
+    plant.update(wait_for=[], out=None, nice=None, zenoh={"mode": "peer", "listen": [ep]})
+    ctl = ZenohConfig(mode="peer", connect=[ep])
+    from service.bus import open_session
+
+    s = open_session(ctl)
+    arrivals: dict[int, float] = {}
+    answered_0 = []
+    pub = s.declare_publisher("energyctl/source/cmd")
+
+    def answer(seq: int, t: float) -> None:
+        if seq == 0:
+            answered_0.append(time.monotonic())
+        pub.put(CMD.encode(seq, t, 0.0, False))
+
+    def on_meas(m) -> None:
+        v = MEAS.decode(m.payload.to_bytes())
+        arrivals[v[0]] = time.monotonic()
+        if v[0] == 0:
+            threading.Timer(0.15, answer, args=(0, v[1])).start()  # a slow first answer
+        else:
+            answer(v[0], v[1])
+
+    sub = s.declare_subscriber("energyctl/source/meas", on_meas)
+    token = s.liveliness().declare_token("energyctl/source/alive")
+    try:
+        res = run_plant(config_from_dict(PlantPeerConfig, plant), threading.Event())
+    finally:
+        token.undeclare()
+        sub.undeclare()
+        s.close()
+    c = res["counters"]
+    # (the last sample's answer may come after the run has ended: missed <= 1)
+    assert c["samples"] == 20 and c["timeouts"] == 0 and c["missed"] <= 1 and c["late"] <= 1, c
+    assert answered_0 and arrivals[1] >= answered_0[0]  # sample 1 only after the answer to sample 0
