@@ -89,8 +89,9 @@ class FeasibilityMonitor:
         self.rel_tol = rel_tol
         self.keep_windows = keep_windows
         self.windows: dict[int, WindowRange] = {}
-        self.violations: list[Violation] | deque[Violation] = (
-            [] if keep_recent is None else deque(maxlen=keep_recent))
+        # the first MAX_VIOLATIONS, or (keep_recent) the newest keep_recent: a deque drops its oldest itself
+        self._keep_first = keep_recent is None
+        self.violations: list[Violation] | deque[Violation] = [] if self._keep_first else deque(maxlen=keep_recent)
         self._outside = {"P": False, "Qdot": False}
         self.count = 0
 
@@ -118,7 +119,7 @@ class FeasibilityMonitor:
         tol = self.rel_tol * max(abs(lo), abs(hi), 1.0)
         out = not (lo - tol <= x <= hi + tol)
         if out and not self._outside[name]:
-            if len(self.violations) < self.MAX_VIOLATIONS or isinstance(self.violations, deque):
+            if not self._keep_first or len(self.violations) < self.MAX_VIOLATIONS:
                 self.violations.append(Violation(t, name, x, lo, hi))
             self.count += 1
         self._outside[name] = out

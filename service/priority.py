@@ -41,4 +41,3 @@ def background(level: int) -> None:
     now = os.getpriority(os.PRIO_PROCESS, 0)
     if level > now:
         os.setpriority(os.PRIO_PROCESS, 0, level)
-
