@@ -128,3 +128,19 @@ def test_the_daemons_forecast_worker_survives_its_process_being_killed():
         assert wait_until(lambda: fw.result[0] == 3, 30.0) and fw.cache_hits == 1 and fw.computed == 2
     finally:
         fw.close()
+
+
+@pytest.mark.parametrize("keep_recent", [None, 3])
+def test_the_run_time_monitor_counts_every_excursion_and_a_daemon_keeps_only_the_newest(keep_recent):
+    """Each excursion of P^{r,out} from the window's incoming range is counted; offline the first ones are kept, a
+    long-running daemon (keep_recent) keeps only its newest few, so its memory stays flat."""
+    from service.feasibility import FeasibilityMonitor
+
+    mon = FeasibilityMonitor(1.0, keep_recent=keep_recent)
+    mon.set_range(0, (-100.0, 100.0, -1e3, 1e3))
+    for j in range(5):  # out, back in: five separate excursions
+        mon.update(0.1 * j, 500.0, 0.0)
+        mon.update(0.1 * j + 0.05, 0.0, 0.0)
+    assert mon.count == 5
+    starts = [0.1 * j for j in range(5)]
+    assert [v.t for v in mon.violations] == (starts if keep_recent is None else starts[2:])
