@@ -32,7 +32,7 @@ ZIN_FIELDS = tuple(TickInput.model_fields)
 def _streams(k: int, t: float) -> list[tuple[str, tuple, tuple]]:
     out = [("meas", MEAS.fields, (k, t, 15.0 + 1e-3 * k, 80.0, 80.15, 15.0)),
            ("z_in", ZIN_FIELDS, (k, t, -1200.0, 0.0, True)),
-           ("cmd", CMD.fields, (k, t, 123.456 + k, False))]
+           ("cmd", CMD.fields, (k, t, 123.456 + k, 23.456 + k, False))]
     if k % 10 == 0:
         out.append(("est", EST_FIELDS, (t, 21.9, 1.5, 3.2, -1200.0, -1199.0, -1200.0, 10.0, -5.0, -1200.0, 3.0,
                                         -1.2 * t, 0.1 * t)))

@@ -89,9 +89,10 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             stop.wait(cfg.start_delay_s)
         rows: list[tuple] = []
         # missed: samples whose command never arrived; late: arrived after its sampling instant (dropped);
-        # stale_periods: periods with no applicable command (u held)
-        counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "late": 0, "stale_periods": 0,
-                    "rejected": 0}
+        # planned_periods: periods run on the plan the previous command carried (its du_dt_next), its successor
+        # missing; stale_periods: periods with neither (u held)
+        counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "late": 0, "planned_periods": 0,
+                    "stale_periods": 0, "rejected": 0}
         send_ns = array("q", bytes(8 * N))
         lat_ns = array("q")
         delay: deque[float] = deque([0.0] * cfg.delay_samples)
@@ -102,7 +103,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
         period_ns = int(round(T * 1e9))
         next_ns = now_ns() + period_ns
         d_rt = cfg.realtime_apply_delay_samples
-        inbox: dict[int, float] = {}  # realtime: commands that arrived, by the seq they answer
+        inbox: dict[int, tuple] = {}  # realtime: (du/dt, planned du/dt) of commands that arrived, by the seq answered
+        prev = (-1, 0.0)  # (seq, planned du/dt) of the last command taken: what acts if the next one is missing
 
         def take(item) -> tuple | None:
             t_rx, payload = item
@@ -133,10 +135,11 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                     continue
                 c = take(item)
                 if c is not None:
-                    inbox[c[0]] = c[2]
+                    inbox[c[0]] = (c[2], c[3])
 
-        def await_answer(k: int) -> float | None:
-            """Wait (up to lockstep_timeout_s) for the command answering sample k: its du/dt, None if none came."""
+        def await_answer(k: int) -> tuple | None:
+            """Wait (up to lockstep_timeout_s) for the command answering sample k: (du/dt, planned du/dt), None if
+            none came."""
             deadline = now_ns() + timeout_ns
             while True:
                 try:
@@ -145,7 +148,16 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                     return None
                 c = take(item)
                 if c is not None and c[0] == k:
-                    return c[2]
+                    return c[2], c[3]
+
+        def planned(j: int) -> float:
+            """du/dt for the period of a missing command answering sample j: the plan of the one answering j - 1,
+            if it came; else 0 (hold)."""
+            if prev[0] == j - 1:
+                counters["planned_periods"] += 1
+                return prev[1]
+            counters["stale_periods"] += 1
+            return 0.0
 
         for k in range(N):
             if stop.is_set():
@@ -165,9 +177,10 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                 r = await_answer(k)
                 if r is None:
                     counters["timeouts"] += 1
-                    r_latest = 0.0  # no answer: hold the source voltage
+                    r_latest = planned(k)  # no answer: the previous command's plan, else hold the source voltage
                 else:
-                    r_latest = du_for_k = r
+                    r_latest = du_for_k = r[0]
+                    prev = (k, r[1])
             else:
                 if k == 0:
                     # arm: the converter is enabled by the controller's first answer, and the sampling clock
@@ -180,17 +193,21 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                         inbox[0] = r
                     next_ns = now_ns() + period_ns
                 # fixed schedule, as a digital modulator: the command answering sample k - d acts over this
-                # period; one that has not arrived by now is too late (dropped when it comes) and the
-                # source holds its voltage (du/dt = 0) rather than keep ramping
-                r = inbox.pop(k - d_rt, None)
-                for old in [q for q in inbox if q < k - d_rt]:
-                    del inbox[old]
+                # period; one that has not arrived by now is too late (dropped when it comes), and the plan
+                # its predecessor carried for this period acts instead; without one the source holds its
+                # voltage (du/dt = 0) rather than keep ramping
+                j = k - d_rt
+                r = inbox.pop(j, None)
+                for old in [q for q in inbox if q < j]:
+                    late = inbox.pop(old)
                     counters["late"] += 1
+                    if old == j - 1:  # too late for its own period, in time to plan this one
+                        prev = (old, late[1])
                 if r is None:
-                    r_latest = 0.0
-                    counters["stale_periods"] += 1
+                    r_latest = planned(j)
                 else:
-                    r_latest = du_for_k = r
+                    r_latest = du_for_k = r[0]
+                    prev = (j, r[1])
             if cfg.delay_samples:
                 delay.append(r_latest)
                 r_apply = delay.popleft()
@@ -203,7 +220,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             if rec is not None:  # streamed through the recorder process: a killed plant keeps its trace
                 rec.offer(t_meas, t, (k, t, s.i, s.v, s.u, s.i_load))
                 if du_for_k == du_for_k:  # NaN: no command answered this sample
-                    rec.offer(t_cmd, t, (k, t, du_for_k, False))
+                    rec.offer(t_cmd, t, (k, t, du_for_k, prev[1], False))
                 rec.offer(t_plant, t, (t, pi, pv, pu, P_l))
             plant.advance(r_apply, T, n_sub)
     except BaseException:

@@ -52,7 +52,7 @@ class ReplayError(RuntimeError):
 
 LEAVES = ("meas", "z_in", "cmd")  # channel codes 0, 1, 2
 KEYS = (MEAS.fields, tuple(TickInput.model_fields), CMD.fields)
-NEEDED = (set(MEAS.fields), {"seq", "P_r_in", "P_r_in_dot", "stepped"}, {"seq", "du_dt"})  # what replay reads
+NEEDED = (set(MEAS.fields), {"seq", "P_r_in", "P_r_in_dot", "stepped"}, {"seq", "du_dt", "du_dt_next"})  # read
 ROW = 9  # a row: channel code, then up to 8 fields
 SEQ_BITS = 40  # key = epoch << SEQ_BITS | seq
 
@@ -66,7 +66,7 @@ class LogData:
     rows: list[np.ndarray] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
     source: str = "json"  # "index": read from the tick index
-    ticks: np.ndarray | None = None  # from the index: n x 10 (TickIndex.COLUMNS), instead of rows
+    ticks: np.ndarray | None = None  # from the index: n x 11 (TickIndex.COLUMNS), instead of rows
 
     def as_rows(self) -> list[np.ndarray]:
         """rows, also for a log read from its index (meas, z_in, cmd of each tick, as the scanner lays them)."""
@@ -76,7 +76,7 @@ class LogData:
         rows = np.zeros((3 * n, ROW))
         rows[0::3, 0], rows[0::3, 1:7] = 0, t[:, 0:6]
         rows[1::3, 0], rows[1::3, 1], rows[1::3, 3:6] = 1, t[:, 0], t[:, 6:9]
-        rows[2::3, 0], rows[2::3, 1], rows[2::3, 3] = 2, t[:, 0], t[:, 9]
+        rows[2::3, 0], rows[2::3, 1], rows[2::3, 3], rows[2::3, 4] = 2, t[:, 0], t[:, 9], t[:, 10]
         return [rows]
 
 
@@ -305,6 +305,7 @@ class Ticks:
     rows: np.ndarray  # n x 9 (or wider, the extra columns ignored): seq, t, i, v, u, i_load, P_r_in, P_r_in_dot,
     #                   stepped
     logged: np.ndarray  # n logged du/dt (NaN where no command was logged)
+    logged_next: np.ndarray  # n logged planned du/dt (du_dt_next)
     has_cmd: np.ndarray  # bool
     cfg_events: dict[int, list]  # key -> controller configs applied before that tick
     restarts: int
@@ -361,7 +362,7 @@ def _from_index(data: list[LogData]) -> Ticks | None:
         return None
     last_epoch = int(epoch[-1]) if len(t) else 0
     cfg_events = _place_config_events([e for d in data for e in d.events], keys, t[:, 1], last_epoch)
-    return Ticks(data[0].core, keys, t, t[:, 9], np.ones(len(t), dtype=bool), cfg_events, last_epoch,
+    return Ticks(data[0].core, keys, t, t[:, 9], t[:, 10], np.ones(len(t), dtype=bool), cfg_events, last_epoch,
                  [d.source for d in data])
 
 
@@ -396,9 +397,11 @@ def collect(parts: list, use_index: bool = True) -> Ticks:
     pos_c = np.minimum(pos, max(len(ck) - 1, 0))
     has_cmd = (pos < len(ck)) & (ck[pos_c] == keys) if len(ck) else np.zeros(len(keys), bool)
     logged = np.where(has_cmd, cv[pos_c, 3] if len(ck) else np.nan, np.nan)
+    logged_next = np.where(has_cmd, cv[pos_c, 4] if len(ck) else np.nan, np.nan)
     last_epoch = int(epoch[-1]) if len(epoch) else 0
     cfg_events = _place_config_events([e for d in data for e in d.events], mk, mv[:, 2], last_epoch)
-    return Ticks(data[0].core, keys, out, logged, has_cmd, cfg_events, last_epoch, [d.source for d in data])
+    return Ticks(data[0].core, keys, out, logged, logged_next, has_cmd, cfg_events, last_epoch,
+                 [d.source for d in data])
 
 
 def replay(path: str | Path | list, overrides: list[str] | None = None, controller: str | None = None,
@@ -419,6 +422,7 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     core = make_core(ctl, model, core_meta["period_s"], core_meta["delay_samples"])
     n = len(tk.keys)
     du = np.zeros(n)
+    du_next = np.zeros(n)
     epochs = tk.keys >> SEQ_BITS
     # stretches between a restart (reset before the tick) or a config change (applied before it)
     cuts = set(np.nonzero(np.diff(epochs))[0] + 1) | {0, n}
@@ -438,7 +442,7 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
             core.reset()
         for c in cfg_at.get(a, []):
             core.set_gains(ControllerConfig.model_validate(c))
-        core.run_batch(tk.rows[a:b], du[a:b])
+        core.run_batch(tk.rows[a:b], du[a:b], du_next[a:b])
         if show:
             sys.stderr.write(f"\rreplay {100 * b // n:3d} %")
             sys.stderr.flush()
@@ -446,11 +450,13 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
         sys.stderr.write("\n")
     first = None
     if not what_if:
-        bad = np.nonzero(tk.has_cmd & (tk.logged != du))[0]
+        bad = np.nonzero(tk.has_cmd & ((tk.logged != du) | (tk.logged_next != du_next)))[0]
         if len(bad):
             j = int(bad[0])
+            f, logged, got = (("du_dt", tk.logged[j], du[j]) if tk.logged[j] != du[j]
+                              else ("du_dt_next", tk.logged_next[j], du_next[j]))
             first = {"seq": int(tk.rows[j, 0]), "epoch": int(epochs[j]), "t": float(tk.rows[j, 1]),
-                     "field": "du_dt", "logged": float(tk.logged[j]), "replayed": float(du[j])}
+                     "field": f, "logged": float(logged), "replayed": float(got)}
     wall = time.perf_counter() - t0
     span = float(tk.rows[-1, 1] - tk.rows[0, 1]) if n else 0.0
     res = {"log": str(path), "ticks": n, "compared": int(tk.has_cmd.sum()) if not what_if else 0,
@@ -458,7 +464,7 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
            "identical": first is None and not what_if, "first_divergence": first, "wall_s": wall,
            "log_span_s": span, "speed_x_realtime": span / wall if wall > 0 else None}
     if out:
-        _write(out, core_meta, ctl, tk, du)
+        _write(out, core_meta, ctl, tk, du, du_next)
         res["out"] = out
     return res
 
@@ -469,7 +475,7 @@ def _controller(base: dict, overrides: list[str]) -> ControllerConfig:
     return scenario_from_dict(data).controller
 
 
-def _write(out: str, core_meta: dict, ctl: ControllerConfig, tk: Ticks, du: np.ndarray) -> None:
+def _write(out: str, core_meta: dict, ctl: ControllerConfig, tk: Ticks, du: np.ndarray, du_next: np.ndarray) -> None:
     from service.core import core_metadata
     from service.recorder import McapFile
 
@@ -489,5 +495,5 @@ def _write(out: str, core_meta: dict, ctl: ControllerConfig, tk: Ticks, du: np.n
             cur_epoch = epochs[j]
         f.add("replay/meas", t, dict(zip(MEAS.fields, (seq, *r[1:6]), strict=True)))
         f.add("replay/z_in", t, {"seq": seq, "t": t, "P_r_in": r[6], "P_r_in_dot": r[7], "stepped": bool(r[8])})
-        f.add("replay/cmd", t, dict(zip(CMD.fields, (seq, t, float(du[j]), False), strict=True)))
+        f.add("replay/cmd", t, dict(zip(CMD.fields, (seq, t, float(du[j]), float(du_next[j]), False), strict=True)))
     f.close()

@@ -29,6 +29,9 @@ class Command(Msg):
     seq: int = Field(ge=0, description="sequence number of the measurement it answers")
     t: float = Field(description="time of the measurement it answers, s")
     du_dt: float = Field(description="commanded source voltage rate, V/s")
+    du_dt_next: float = Field(default=0.0, description="du/dt planned for the period after this command's, V/s: "
+                                                       "what the plant applies there if the next command is missing "
+                                                       "or late (0: hold u)")
     limited: bool = Field(default=False, description="the command was clipped by actuator limits")
 
 

@@ -168,6 +168,10 @@ class ControllerConfig(Strict):
         default=None, description="samples of loop delay to predict over; None = the known loop delay"
     )
     deriv_tau_s: Pos = Field(default=5e-4, description="estimator derivative window time constant")
+    plan_next_period: bool = Field(
+        default=True, description="each command also carries du/dt planned for the period after it (the same law "
+                                  "applied to the predicted state there); the plant applies that plan when the next "
+                                  "command is missing or late, instead of holding u (packetized predictive control)")
     limits: LimitsConfig = LimitsConfig()
 
 

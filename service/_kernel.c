@@ -26,8 +26,8 @@ enum {
     O_DU = 0, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1,
     O_SEQ, O_T, O_STEPS, O_COUNT, O_HAS_EST,
     O_EST = 17, /* 18 RLCEnergy fields, in its __slots__ order */
-    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42,
-    O_N = 43
+    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42, O_DU_NEXT = 43,
+    O_N = 44
 };
 enum { E_E = 0, E_ET, E_D, E_TAU, E_P, E_PDOT, E_PU, E_QDU, E_PL, E_QDL, E_PM, E_YZ, E_YZB, E_ETA, E_PRO, E_QRO,
        E_PROP, E_QROP };
@@ -38,16 +38,16 @@ typedef struct {
     double R, L, C, T, tau;
     int d, n_pred;
     /* gains and limits (set_params) */
-    int kind, continuous, cancel_Et;
+    int kind, continuous, cancel_Et, plan;
     double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC;
     /* estimator: EwLineFit over (i, v, i_2) and the z_out integrals */
     int has_t;
     double t_last, S0, S1, S2, Sy[3], Say[3], ref[3];
     int has_last;
     double last_t, last_P, last_Q;
-    /* issued commands not yet acting (oldest first from head), previous command */
+    /* the last d + 1 samples answered: pending[3 j] = s, [3 j + 1] = du/dt answering s, [3 j + 2] = du/dt planned
+       for the period after, at j = s mod (d + 1) (s NaN: none); previous command */
     double *pending;
-    int head;
     double r_prev;
     double o[O_N];
 } Kernel;
@@ -158,9 +158,10 @@ static void kernel_reset(Kernel *k)
     k->o[O_COUNT] = 0.0;
     k->o[O_ZRUN0] = k->o[O_ZRUN1] = 0.0;
     k->has_last = 0;
-    for (int j = 0; j < k->d; j++)
-        k->pending[j] = 0.0;
-    k->head = 0;
+    for (int j = 0; j <= k->d; j++) {
+        k->pending[3 * j] = NAN;
+        k->pending[3 * j + 1] = k->pending[3 * j + 2] = 0.0;
+    }
     k->r_prev = 0.0;
     k->o[O_STEPS] = 0.0;
 }
@@ -245,56 +246,42 @@ static void energy_update(double *e, double R, double L, double C, double i, dou
     e[E_QROP] = e[E_QDL] + 2.0 * (i * dv - v * di);
 }
 
-/* ControlCore.step; returns 1 if the estimator took the sample. */
-static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double su, double si2, double P_in,
-                       double P_in_dot)
+/* slot of sample seq in pending: seq mod (d + 1), non-negative as Python's % */
+static int slot_of(const Kernel *k, double seq)
+{
+    double m = (double)(k->d + 1);
+    double j = fmod(seq, m);
+    return (int)(j < 0.0 ? j + m : j);
+}
+
+/* ControlCore.issued */
+static double issued(const Kernel *k, double seq)
+{
+    const double *e = k->pending + 3 * slot_of(k, seq);
+    if (e[0] == seq)
+        return e[1];
+    e = k->pending + 3 * slot_of(k, seq - 1.0);
+    return e[0] == seq - 1.0 ? e[2] : 0.0;
+}
+
+static void remember(Kernel *k, double seq, double r, double plan)
+{
+    double *e = k->pending + 3 * slot_of(k, seq);
+    e[0] = seq;
+    e[1] = r;
+    e[2] = plan;
+}
+
+/* ControlCore._law: du/dt within the limits for the period from t_{k+dd}, from the state predicted there; *raw
+   before the limits, *u_zp the u_z it implies. */
+static double law(const Kernel *k, double i_p, double v_p, double u_p, double P_meas, double P_in, double P_in_dot,
+                  int dd, double r_prev, double *raw_p, double *u_zp)
 {
     const double R = k->R, L = k->L, C = k->C, T = k->T;
     const double u_min = k->u_min, u_max = k->u_max, r_max = k->r_max, i_floor = k->i_floor;
     const double v_ref = k->v_ref, K = k->K, alpha = k->alpha, phi = k->phi, decay = k->decay, keC = k->keC;
-    const int d = k->d;
-    double *o = k->o;
-    double applied = d > 0 ? k->pending[k->head] : k->r_prev;
-
-    /* estimator */
-    double y[3] = {si_, sv, si2};
-    int took = fit_update(k, t, y);
-    if (took) {
-        double *fv = o + O_FITV, *fs = o + O_FITS, *e = o + O_EST;
-        energy_update(e, R, L, C, fv[0], fv[1], su, fv[2], fs[0], fs[1], applied, fs[2]);
-        if (k->has_last) {
-            double h = t - k->last_t;
-            o[O_ZRUN0] += 0.5 * h * (k->last_P + e[E_PROP]);
-            o[O_ZRUN1] += 0.5 * h * (k->last_Q + e[E_QROP]);
-        }
-        k->has_last = 1;
-        k->last_t = t;
-        k->last_P = e[E_PROP];
-        k->last_Q = e[E_QROP];
-        o[O_HAS_EST] = 1.0;
-        o[O_Z0] = o[O_ZRUN0];
-        o[O_Z1] = o[O_ZRUN1];
-    }
-
-    /* state at the start of the period this command will act on */
-    double P_meas = sv * si2;
-    double Pdot = -P_in_dot;
-    double i_p = si_, v_p = sv, u_p = su;
-    for (int j = 0; j < d; j++) {
-        double r_j = k->pending[(k->head + j) % d];
-        predict(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C);
-        if (u_p > u_max)
-            u_p = u_max;
-        else if (u_p < u_min)
-            u_p = u_min;
-    }
-    double P_app = P_meas + Pdot * ((double)d + 0.5) * T;
-    o[O_IPRED] = i_p; o[O_VPRED] = v_p; o[O_UPRED] = u_p;
-
-    double y_z = R * si_ * si_ - su * si_;
-    double y_ref = y_reference(P_in, sv, v_ref, keC);
-    o[O_YZ] = y_z; o[O_YREF] = y_ref; o[O_E] = y_z - y_ref;
-    double P_in_app = P_in + P_in_dot * (double)d * T;
+    double P_app = P_meas + (-P_in_dot) * ((double)dd + 0.5) * T;
+    double P_in_app = P_in + P_in_dot * (double)dd * T;
     double u_z = 0.0, r;
 
     if (k->kind == K_FIXED) {
@@ -338,7 +325,7 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
         } else {
             double r_lo = PYMAX(-r_max, (u_min - u_p) / T);
             double r_hi = PYMAX(r_lo, PYMIN(r_max, (u_max - u_p) / T));
-            double r0 = PYMIN(PYMAX(k->r_prev, r_lo), r_hi);
+            double r0 = PYMIN(PYMAX(r_prev, r_lo), r_hi);
             double i1, v1, u1, sens;
             predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, k->n_pred, R, L, C, &i1, &v1, &u1, &sens);
             double e1;
@@ -353,7 +340,7 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
                 double stepv = alpha * T * sat;
                 e1 = fabs(stepv) >= fabs(e_p) ? 0.0 : e_p - stepv;
             }
-            double y_target = y_reference(P_in + P_in_dot * (double)(d + 1) * T, v1, v_ref, keC) + e1;
+            double y_target = y_reference(P_in + P_in_dot * (double)(dd + 1) * T, v1, v_ref, keC) + e1;
             r = r0 + solve_rate_for_target(R, T, i1, u1, sens, y_target);
             u_z = u_p * di - i_p * r;
         }
@@ -364,17 +351,81 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
         r = 0.0;
     r = PYMIN(PYMAX(r, (u_min - u_p) / T), (u_max - u_p) / T);
     r = PYMIN(PYMAX(r, -r_max), r_max);
+    *raw_p = raw;
+    *u_zp = u_z;
+    return r;
+}
+
+/* ControlCore.step; returns 1 if the estimator took the sample. */
+static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double su, double si2, double P_in,
+                       double P_in_dot)
+{
+    const double R = k->R, L = k->L, C = k->C, T = k->T;
+    const double u_min = k->u_min, u_max = k->u_max;
+    const int d = k->d;
+    double *o = k->o;
+    double applied = d > 0 ? issued(k, seq - d) : k->r_prev;
+
+    /* estimator */
+    double y[3] = {si_, sv, si2};
+    int took = fit_update(k, t, y);
+    if (took) {
+        double *fv = o + O_FITV, *fs = o + O_FITS, *e = o + O_EST;
+        energy_update(e, R, L, C, fv[0], fv[1], su, fv[2], fs[0], fs[1], applied, fs[2]);
+        if (k->has_last) {
+            double h = t - k->last_t;
+            o[O_ZRUN0] += 0.5 * h * (k->last_P + e[E_PROP]);
+            o[O_ZRUN1] += 0.5 * h * (k->last_Q + e[E_QROP]);
+        }
+        k->has_last = 1;
+        k->last_t = t;
+        k->last_P = e[E_PROP];
+        k->last_Q = e[E_QROP];
+        o[O_HAS_EST] = 1.0;
+        o[O_Z0] = o[O_ZRUN0];
+        o[O_Z1] = o[O_ZRUN1];
+    }
+
+    /* state at the start of the period this command will act on */
+    double P_meas = sv * si2;
+    double Pdot = -P_in_dot;
+    double i_p = si_, v_p = sv, u_p = su;
+    for (int j = 0; j < d; j++) {
+        double r_j = issued(k, seq - d + j);
+        predict(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C);
+        if (u_p > u_max)
+            u_p = u_max;
+        else if (u_p < u_min)
+            u_p = u_min;
+    }
+    o[O_IPRED] = i_p; o[O_VPRED] = v_p; o[O_UPRED] = u_p;
+
+    double y_z = R * si_ * si_ - su * si_;
+    double y_ref = y_reference(P_in, sv, k->v_ref, k->keC);
+    o[O_YZ] = y_z; o[O_YREF] = y_ref; o[O_E] = y_z - y_ref;
+
+    /* the command for the period from t_{k+d}, and the plan for the one after */
+    double raw, u_z, raw1, u_z1;
+    double r = law(k, i_p, v_p, u_p, P_meas, P_in, P_in_dot, d, k->r_prev, &raw, &u_z);
+    double plan = 0.0;
+    if (k->plan) {
+        double i1 = i_p, v1 = v_p, u1 = u_p;
+        predict(&i1, &v1, &u1, P_meas + Pdot * ((double)d + 0.5) * T, r, T, k->n_pred, R, L, C);
+        if (u1 > u_max)
+            u1 = u_max;
+        else if (u1 < u_min)
+            u1 = u_min;
+        plan = law(k, i1, v1, u1, P_meas, P_in, P_in_dot, d + 1, r, &raw1, &u_z1);
+    }
     o[O_LIMITED] = (r != raw) ? 1.0 : 0.0;
     o[O_DU_RAW] = raw;
     o[O_DU] = r;
+    o[O_DU_NEXT] = plan;
     o[O_UZ] = u_z;
     o[O_SEQ] = seq;
     o[O_T] = t;
     k->r_prev = r;
-    if (d > 0) {
-        k->pending[k->head] = r;
-        k->head = (k->head + 1) % d;
-    }
+    remember(k, seq, r, plan);
     o[O_STEPS] += 1.0;
     return took;
 }
@@ -393,7 +444,7 @@ static int Kernel_init(Kernel *self, PyObject *args, PyObject *kw)
         return -1;
     }
     PyMem_Free(self->pending);
-    self->pending = PyMem_Calloc(d > 0 ? (size_t)d : 1, sizeof(double));
+    self->pending = PyMem_Calloc(3 * ((size_t)d + 1), sizeof(double));
     if (self->pending == NULL) {
         PyErr_NoMemory();
         return -1;
@@ -413,7 +464,8 @@ static void Kernel_dealloc(Kernel *self)
 
 static PyObject *Kernel_set_params(Kernel *self, PyObject *args)
 {
-    if (!PyArg_ParseTuple(args, "iii(ddddd)(dd)(dddd)(dddd)d", &self->kind, &self->continuous, &self->cancel_Et,
+    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)d", &self->kind, &self->continuous, &self->cancel_Et,
+                          &self->plan,
                           &self->v_ref, &self->K, &self->alpha, &self->phi, &self->decay, &self->lK1, &self->lK2,
                           &self->bK1, &self->bK2, &self->bK3, &self->bPi, &self->u_min, &self->u_max, &self->r_max,
                           &self->i_floor, &self->keC))
@@ -444,31 +496,39 @@ static PyObject *Kernel_step(Kernel *self, PyObject *const *args, Py_ssize_t nar
     return PyBool_FromLong(took);
 }
 
-/* run(inputs, du_out, width=9): a whole replay segment without returning to Python. inputs holds n rows of
- * width >= 9 doubles, the first 9 (seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped) read; a row with
- * stepped == 0 is not given to the core and answers 0.0 (the daemon held). du_out receives n doubles. */
+/* run(inputs, du_out, width=9, next_out=None): a whole replay segment without returning to Python. inputs holds
+ * n rows of width >= 9 doubles, the first 9 (seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped) read; a row
+ * with stepped == 0 is not given to the core and answers 0.0 with no plan (the daemon held: ControlCore.hold).
+ * du_out (and next_out, if given: the planned du/dt) receive n doubles. */
 static PyObject *Kernel_run(Kernel *self, PyObject *args)
 {
-    Py_buffer in, out;
+    Py_buffer in, out, nxt = {0};
     int width = 9;
-    if (!PyArg_ParseTuple(args, "y*w*|i", &in, &out, &width))
+    if (!PyArg_ParseTuple(args, "y*w*|iw*", &in, &out, &width, &nxt))
         return NULL;
     PyObject *res = NULL;
     Py_ssize_t row = (Py_ssize_t)((width >= 9 ? width : 9) * sizeof(double));
     Py_ssize_t n = in.len / row;
-    if (width < 9 || in.len != n * row || out.len != n * (Py_ssize_t)sizeof(double)) {
-        PyErr_SetString(PyExc_ValueError, "run(): inputs must be n x width (>= 9) doubles and du_out n doubles");
+    if (width < 9 || in.len != n * row || out.len != n * (Py_ssize_t)sizeof(double)
+        || (nxt.obj != NULL && nxt.len != out.len)) {
+        PyErr_SetString(PyExc_ValueError, "run(): inputs must be n x width (>= 9) doubles, du_out and next_out n "
+                                          "doubles");
         goto done;
     }
     const double *x = (const double *)in.buf;
-    double *du = (double *)out.buf;
+    double *du = (double *)out.buf, *dn = nxt.obj != NULL ? (double *)nxt.buf : NULL;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = 0; j < n; j++, x += width) {
         if (x[8] != 0.0) {
             kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
             du[j] = self->o[O_DU];
+            if (dn != NULL)
+                dn[j] = self->o[O_DU_NEXT];
         } else {
+            remember(self, x[0], 0.0, 0.0);
             du[j] = 0.0;
+            if (dn != NULL)
+                dn[j] = 0.0;
         }
     }
     Py_END_ALLOW_THREADS
@@ -477,12 +537,25 @@ static PyObject *Kernel_run(Kernel *self, PyObject *args)
 done:
     PyBuffer_Release(&in);
     PyBuffer_Release(&out);
+    if (nxt.obj != NULL)
+        PyBuffer_Release(&nxt);
     return res;
+}
+
+static PyObject *Kernel_hold(Kernel *self, PyObject *arg)
+{
+    double seq = PyFloat_AsDouble(arg);
+    if (seq == -1.0 && PyErr_Occurred())
+        return NULL;
+    remember(self, seq, 0.0, 0.0);
+    Py_RETURN_NONE;
 }
 
 static PyObject *Kernel_applied_rate(Kernel *self, PyObject *Py_UNUSED(ignored))
 {
-    return PyFloat_FromDouble(self->d > 0 ? self->pending[self->head] : self->r_prev);
+    if (self->d == 0)
+        return PyFloat_FromDouble(self->r_prev);
+    return PyFloat_FromDouble(issued(self, (self->o[O_STEPS] > 0.0 ? self->o[O_SEQ] + 1.0 : 0.0) - self->d));
 }
 
 /* The outputs, read-only; the view holds a reference to the kernel, which owns o[] for its whole life. */
@@ -499,6 +572,7 @@ static PyMethodDef Kernel_methods[] = {
     {"step", (PyCFunction)(void (*)(void))Kernel_step, METH_FASTCALL, "one control step"},
     {"run", (PyCFunction)Kernel_run, METH_VARARGS, "many steps (replay)"},
     {"applied_rate", (PyCFunction)Kernel_applied_rate, METH_NOARGS, "du/dt acting now"},
+    {"hold", (PyCFunction)Kernel_hold, METH_O, "sample seq was answered with du/dt = 0, no plan"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -24,9 +24,16 @@ Laws (paper Sec. "Interactive component-level control", RLC instance; derivation
     BM       u = R i + v_ref - L (Pi / v^2 + K3) dv/dt - K1 (v - v_ref) - K2 dv/dt   (Eqn BMCtrl)
              (both u-laws are reached by ramping u to the value over one period)
 
-Loop delay: a command computed from the sample at t_k acts from t_{k+d}. The core keeps the d
-commands it already issued and integrates the nominal model over them from the sample (prediction),
-then computes the command for the period that starts at t_{k+d}.
+Loop delay: a command computed from the sample at t_k acts from t_{k+d}, for one period (the plant's
+fixed schedule). So over the periods k .. k+d-1 the commands answering samples k-d .. k-1 act. The core
+keeps the last d commands it issued with the sequence numbers they answer and integrates the nominal model
+over them from the sample (prediction), then computes the command for the period that starts at t_{k+d}.
+Each command also carries a plan, du_dt_next: the same law applied to the state predicted at t_{k+d+1}
+(after this command's period), for the period after. A command that is missing or late at the plant is
+replaced by its predecessor's plan (packetized predictive control), so a lost command costs only what the
+newer sample would have changed, not a whole period at du/dt = 0. For a sample the core did not answer (the
+loop skipped it) the prediction uses that plan as the plant does; with neither, the plant holds its voltage
+(du/dt = 0) and so does the prediction. plan_next_period = false sends no plan (0: hold).
 
 Limits: u in [u_min, u_max] at the end of the period, |du/dt| <= du_dt_max, |i| >= i_floor where the
 continuous mapping divides by i.
@@ -35,7 +42,6 @@ continuous mapping divides by i.
 from __future__ import annotations
 
 import math
-from collections import deque
 
 from schemas.scenario import CircuitParams, ControllerConfig
 
@@ -150,12 +156,12 @@ def y_reference(P_in: float, v: float, v_ref: float, k_e_half_C: float) -> float
 class Output:
     """What one step returns (reused each step; copy what you keep)."""
 
-    __slots__ = ("seq", "t", "du_dt", "du_dt_raw", "u_z", "y_z", "y_ref", "e", "limited", "est", "z_out0",
+    __slots__ = ("seq", "t", "du_dt", "du_dt_next", "du_dt_raw", "u_z", "y_z", "y_ref", "e", "limited", "est", "z_out0",
                  "z_out1", "i_pred", "v_pred", "u_pred")
 
     def __init__(self) -> None:
         self.seq = 0
-        self.t = self.du_dt = self.du_dt_raw = self.u_z = self.y_z = self.y_ref = self.e = 0.0
+        self.t = self.du_dt = self.du_dt_next = self.du_dt_raw = self.u_z = self.y_z = self.y_ref = self.e = 0.0
         self.i_pred = self.v_pred = self.u_pred = self.z_out0 = self.z_out1 = 0.0
         self.limited = False
         self.est: RLCEnergy | None = None
@@ -211,13 +217,26 @@ class CoreBase:
         self._bm = (c.bm_K1, c.bm_K2_s, c.bm_K3_S, c.bm_Pi_W)
         self._lim = (lim.u_min_V, lim.u_max_V, lim.du_dt_max_V_per_s, lim.i_floor_A)
         self._keC = 0.5 * c.K_E_per_s * self._C if c.regulation == "energy" else 0.0
+        self._plan = c.plan_next_period
 
-    def run_batch(self, rows, du_out) -> None:
+    def run_batch(self, rows, du_out, next_out=None) -> None:
         """Step n rows (n x w floats, w >= 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped, then anything;
-        stepped 0 = not given to the core, answers 0.0) and write each du/dt into du_out (log replay; the
-        compiled core does it in C)."""
+        stepped 0 = not given to the core, answered 0.0 with no plan: hold) and write each du/dt into du_out, the
+        planned du/dt into next_out if given (log replay; the compiled core does it in C)."""
         for j, r in enumerate(rows.tolist()):
-            du_out[j] = self.step(Sample(int(r[0]), *r[1:6]), Incoming(r[6], r[7])).du_dt if r[8] else 0.0
+            if r[8]:
+                o = self.step(Sample(int(r[0]), *r[1:6]), Incoming(r[6], r[7]))
+                du, nxt = o.du_dt, o.du_dt_next
+            else:
+                self.hold(int(r[0]))
+                du = nxt = 0.0
+            du_out[j] = du
+            if next_out is not None:
+                next_out[j] = nxt
+
+    def hold(self, seq: int) -> None:
+        """Sample seq was answered with du/dt = 0 and no plan, without a step (inactive, no reference)."""
+        raise NotImplementedError
 
     def y_ref_of(self, P_in: float, v: float) -> float:
         """This controller's reference map y_ref(P^{r,in}, v) (W)."""
@@ -237,22 +256,44 @@ class ControlCore(CoreBase):
 
     def reset(self) -> None:
         """Forget history (new run, plant restart)."""
-        self.pending: deque[float] = deque([0.0] * self.d, maxlen=max(self.d, 1))
+        # pending[s % (d + 1)] = (s, du/dt answering sample s, du/dt planned for the period after) for the last
+        # d + 1 samples answered (None: no sample)
+        self.pending: list[tuple] = [(None, 0.0, 0.0)] * (self.d + 1)
         self.r_prev = 0.0
         self.estimator.reset()
         self.steps = 0
 
-    def applied_rate(self) -> float:
-        """du/dt acting on the plant now, as far as the controller knows (V/s)."""
-        return self.pending[0] if self.d > 0 else self.r_prev
+    def issued(self, seq: int) -> float:
+        """du/dt the plant applies over the period the command answering sample seq acts on (V/s), as far as this
+        core knows: that command if it answered seq, else the plan sent with the answer to seq - 1, else 0.0
+        (the plant holds u). Remembered for the last d + 1 samples."""
+        m = self.d + 1
+        j, r, _ = self.pending[seq % m]
+        if j == seq:
+            return r
+        j, _, plan = self.pending[(seq - 1) % m]
+        return plan if j == seq - 1 else 0.0
+
+    def hold(self, seq: int) -> None:
+        """Sample seq was answered with du/dt = 0 and no plan, without a step (inactive, no reference)."""
+        self.pending[seq % (self.d + 1)] = (seq, 0.0, 0.0)
+
+    def applied_rate(self, seq: int | None = None) -> float:
+        """du/dt acting on the plant over the period from sample seq (V/s), as far as the controller knows: what
+        acts for sample seq - d (issued). seq None: the period after the last step."""
+        if self.d == 0:
+            return self.r_prev
+        if seq is None:
+            seq = self.out.seq + 1 if self.steps else 0
+        return self.issued(seq - self.d)
 
     def step(self, s: Sample, inc: Incoming) -> Output:
         R, L, C = self._R, self._L, self._C
-        u_min, u_max, r_max, i_floor = self._lim
-        v_ref, K, cancel_Et, alpha, phi, decay = self._gains
+        u_min, u_max = self._lim[0], self._lim[1]
         T, d = self.T, self.d
         out = self.out
-        est = self.estimator.update(s.t, s.i, s.v, s.u, s.i_load, self.applied_rate())
+        seq = s.seq
+        est = self.estimator.update(s.t, s.i, s.v, s.u, s.i_load, self.issued(seq - d) if d > 0 else self.r_prev)
         if est is not None:
             out.est = est
             out.z_out0, out.z_out1 = self.estimator.z_out
@@ -261,23 +302,54 @@ class ControlCore(CoreBase):
         P_meas = s.v * s.i_load
         Pdot = -inc.P_r_in_dot  # the load's rate as announced by the neighbour
         i_p, v_p, u_p = s.i, s.v, s.u
-        if d > 0:
-            n = self.n_pred
-            for k, r_k in enumerate(self.pending):
-                i_p, v_p, u_p = predict(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, n, R, L, C)
-                if u_p > u_max:
-                    u_p = u_max
-                elif u_p < u_min:
-                    u_p = u_min
-        P_app = P_meas + Pdot * (d + 0.5) * T  # load power over the coming period
+        n = self.n_pred
+        for k in range(d):
+            r_k = self.issued(seq - d + k)
+            i_p, v_p, u_p = predict(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, n, R, L, C)
+            if u_p > u_max:
+                u_p = u_max
+            elif u_p < u_min:
+                u_p = u_min
         out.i_pred, out.v_pred, out.u_pred = i_p, v_p, u_p
 
-        # --- energy-space output and reference at the sample (reported) and at t_{k+d} ---
+        # --- energy-space output and reference at the sample (reported) ---
         y_z = R * s.i * s.i - s.u * s.i
-        keC = self._keC
-        y_ref = y_reference(inc.P_r_in, s.v, v_ref, keC)
+        y_ref = y_reference(inc.P_r_in, s.v, self.cfg.v_ref_V, self._keC)
         out.y_z, out.y_ref, out.e = y_z, y_ref, y_z - y_ref
-        P_in_app = inc.P_r_in + inc.P_r_in_dot * d * T
+
+        # --- the command for the period from t_{k+d}, and the plan for the one after ---
+        r, raw, u_z = self._law(i_p, v_p, u_p, P_meas, inc, d, self.r_prev)
+        plan = 0.0
+        if self._plan:
+            i1, v1, u1 = predict(i_p, v_p, u_p, P_meas + Pdot * (d + 0.5) * T, r, T, n, R, L, C)
+            if u1 > u_max:
+                u1 = u_max
+            elif u1 < u_min:
+                u1 = u_min
+            plan = self._law(i1, v1, u1, P_meas, inc, d + 1, r)[0]
+        out.limited = r != raw
+        out.du_dt_raw = raw
+        out.du_dt = r
+        out.du_dt_next = plan
+        out.u_z = u_z
+        out.seq = seq
+        out.t = s.t
+        self.r_prev = r
+        self.pending[seq % (d + 1)] = (seq, r, plan)
+        self.steps += 1
+        return out
+
+    def _law(self, i_p: float, v_p: float, u_p: float, P_meas: float, inc: Incoming, dd: int,
+             r_prev: float) -> tuple[float, float, float]:
+        """(du/dt within the limits, du/dt before them, u_z) for the period from t_{k+dd}, from the state
+        (i_p, v_p, u_p) predicted there; r_prev (V/s) is where the exact mapping linearises."""
+        R, L, C = self._R, self._L, self._C
+        u_min, u_max, r_max, i_floor = self._lim
+        v_ref, K, cancel_Et, alpha, phi, decay = self._gains
+        T = self.T
+        P_app = P_meas + (-inc.P_r_in_dot) * (dd + 0.5) * T  # load power over that period
+        keC = self._keC
+        P_in_app = inc.P_r_in + inc.P_r_in_dot * dd * T
         kind = self._kind
         u_z = 0.0
 
@@ -320,7 +392,7 @@ class ControlCore(CoreBase):
             else:
                 r_lo = max(-r_max, (u_min - u_p) / T)
                 r_hi = max(r_lo, min(r_max, (u_max - u_p) / T))
-                r0 = min(max(self.r_prev, r_lo), r_hi)
+                r0 = min(max(r_prev, r_lo), r_hi)
                 i1, v1, u1, si = predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, self.n_pred, R, L, C)
                 if kind == "fblc":
                     e1 = e_p * decay
@@ -331,26 +403,16 @@ class ControlCore(CoreBase):
                     sat = max(-1.0, min(1.0, e_p / phi)) if phi > 0.0 else math.copysign(1.0, e_p)
                     stepv = alpha * T * sat
                     e1 = 0.0 if abs(stepv) >= abs(e_p) else e_p - stepv
-                y_target = y_reference(inc.P_r_in + inc.P_r_in_dot * (d + 1) * T, v1, v_ref, keC) + e1
+                y_target = y_reference(inc.P_r_in + inc.P_r_in_dot * (dd + 1) * T, v1, v_ref, keC) + e1
                 r = r0 + solve_rate_for_target(R, T, i1, u1, si, y_target)
-                u_z = u_p * di - i_p * r  # the Qdot^u this command implies at t_{k+d}
+                u_z = u_p * di - i_p * r  # the Qdot^u this command implies at t_{k+dd}
 
         raw = r
         if not math.isfinite(r):
             r = 0.0
         r = min(max(r, (u_min - u_p) / T), (u_max - u_p) / T)  # u stays in range ...
         r = min(max(r, -r_max), r_max)  # ... unless that would break the slew limit
-        out.limited = r != raw
-        out.du_dt_raw = raw
-        out.du_dt = r
-        out.u_z = u_z
-        out.seq = s.seq
-        out.t = s.t
-        self.r_prev = r
-        if d > 0:
-            self.pending.append(r)
-        self.steps += 1
-        return out
+        return r, raw, u_z
 
 
 def make_core(cfg: ControllerConfig, model: CircuitParams, period_s: float, loop_delay_samples: int = 0,

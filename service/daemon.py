@@ -453,7 +453,7 @@ class Daemon:
         self.degraded_reason = why
         ls = self.last_sample
         if ls is not None and publish_hold:
-            self.cmd_pub.put(CMD.encode(ls[0], ls[1], 0.0, True))
+            self.cmd_pub.put(CMD.encode(ls[0], ls[1], 0.0, 0.0, True))
         if self.recorder is not None:
             t = ls[1] if ls else 0.0
             self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "degraded", why))
@@ -461,8 +461,8 @@ class Daemon:
     def _hold(self, v: tuple, reason: str, detail: str = "") -> None:
         """A rejected measurement: counted, recorded, answered with du/dt = 0; the core never sees it."""
         self._reject(reason, detail)
-        self.cmd_pub.put(CMD.encode(v[0], v[1], 0.0, True))
-        self.last_cmd = (v[0], v[1], 0.0, True)
+        self.cmd_pub.put(CMD.encode(v[0], v[1], 0.0, 0.0, True))
+        self.last_cmd = (v[0], v[1], 0.0, 0.0, True)
         self._remember(v[0], v[4], 0.0)
 
     def _remember(self, seq: int, u: float, du: float) -> None:
@@ -526,13 +526,14 @@ class Daemon:
         stepped = self.state == "active" and fresh
         if stepped:
             out = self.core.step(s, Incoming(P_in, P_in_dot))
-            du, limited = out.du_dt, out.limited
+            du, du_next, limited = out.du_dt, out.du_dt_next, out.limited
             est = out.est
             self._feasibility(v[1], est)
         else:
-            du, limited = 0.0, False  # inactive, or no fresh reference: hold the source voltage
-        self.cmd_pub.put(CMD.encode(seq, v[1], du, limited))
-        self.last_cmd = (seq, v[1], du, limited)
+            du, du_next, limited = 0.0, 0.0, False  # inactive, or no fresh reference: hold the source voltage
+            self.core.hold(seq)
+        self.cmd_pub.put(CMD.encode(seq, v[1], du, du_next, limited))
+        self.last_cmd = (seq, v[1], du, du_next, limited)
         self._remember(seq, v[4], du)
         rec = self.recorder
         if rec is not None:  # tuples only: encoding and I/O happen on the recorder thread

@@ -19,7 +19,7 @@ KIND_CODE = {"fixed": 0, "lqr": 1, "bm": 2, "fblc": 3, "smc": 4}
 # output buffer layout: service/_kernel.c, enum O_*
 (O_DU, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1, O_SEQ, O_T, O_STEPS,
  O_COUNT, O_HAS_EST) = range(17)
-O_EST, O_FITV, O_FITS, O_ZRUN = 17, 35, 38, 41
+O_EST, O_FITV, O_FITS, O_ZRUN, O_DU_NEXT = 17, 35, 38, 41, 43
 ROW = 9  # run_batch input row: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped
 
 
@@ -45,6 +45,7 @@ class KernelOutput:
 
     __slots__ = ("_b", "_est")
     du_dt = _slot(O_DU, "du/dt sent (V/s)")
+    du_dt_next = _slot(O_DU_NEXT, "du/dt planned for the period after (V/s; 0 without plan_next_period)")
     du_dt_raw = _slot(O_DU_RAW, "du/dt before limits (V/s)")
     u_z = _slot(O_UZ, "u_z = Qdot^u (W/s)")
     y_z = _slot(O_YZ, "y_z at the sample (W)")
@@ -120,7 +121,7 @@ class CompiledCore(CoreBase):
 
     def _push(self) -> None:
         v_ref, K, cancel_Et, alpha, phi, decay = self._gains
-        self._k.set_params(KIND_CODE[self._kind], int(self._continuous), int(bool(cancel_Et)),
+        self._k.set_params(KIND_CODE[self._kind], int(self._continuous), int(bool(cancel_Et)), int(self._plan),
                            (v_ref, K, alpha, phi, decay), self._lqr, self._bm, self._lim, self._keC)
 
     def reset(self) -> None:
@@ -133,12 +134,18 @@ class CompiledCore(CoreBase):
     def applied_rate(self) -> float:
         return self._k.applied_rate()
 
+    def hold(self, seq: int) -> None:
+        self._k.hold(seq)
+
     def step(self, s: Sample, inc: Incoming) -> KernelOutput:
         self._step(s.seq, s.t, s.i, s.v, s.u, s.i_load, inc.P_r_in, inc.P_r_in_dot)
         return self.out
 
-    def run_batch(self, rows, du_out) -> None:
+    def run_batch(self, rows, du_out, next_out=None) -> None:
         """Step n rows (a C-contiguous n x w array of doubles, w >= 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot,
-        stepped, then anything) and write each du/dt (0.0 where stepped is 0: not given to the core) into du_out
-        (n doubles)."""
-        self._k.run(rows, du_out, rows.shape[1])
+        stepped, then anything) and write each du/dt (0.0 where stepped is 0: not given to the core, held) into
+        du_out (n doubles), and the planned du/dt into next_out if given."""
+        if next_out is None:
+            self._k.run(rows, du_out, rows.shape[1])
+        else:
+            self._k.run(rows, du_out, rows.shape[1], next_out)

@@ -91,6 +91,7 @@ def write_trace_mcap(path: str | Path, tr: dict, metadata: dict[str, dict[str, s
         if (topic != "est" or has_est) and (topic != "z_in" or has_in):
             f.channel(f"{prefix}/{topic}", schema)
     cols = {k: v.tolist() for k, v in tr.items()}
+    nxt = cols.get("du_dt_next") or [0.0] * len(cols["t"])
     est_keys = ("E", "p", "E_t", "y_z", "y_z_balance", "y_ref", "eta", "u_z", "P_r_out", "Qdot_r_out",
                 "z_out0", "z_out1")
     for k, t in enumerate(cols["t"]):
@@ -100,7 +101,8 @@ def write_trace_mcap(path: str | Path, tr: dict, metadata: dict[str, dict[str, s
             f.add(f"{prefix}/z_in", t, {"seq": k, "t": t, "P_r_in": cols["P_r_in"][k],
                                         "P_r_in_dot": cols["P_r_in_dot"][k], "stepped": True})
         if cols["du_dt"][k] == cols["du_dt"][k]:  # NaN: no command answered this sample
-            f.add(f"{prefix}/cmd", t, {"seq": k, "t": t, "du_dt": cols["du_dt"][k], "limited": False})
+            f.add(f"{prefix}/cmd", t, {"seq": k, "t": t, "du_dt": cols["du_dt"][k], "du_dt_next": nxt[k],
+                                       "limited": False})
         if has_est:
             est = {"t": t}
             for key in est_keys:

@@ -169,7 +169,7 @@ class TickIndex:
 
     NAME = "energyctl.ticks"
     MEDIA_TYPE = "application/x-energyctl-ticks+zstd"
-    COLUMNS = ("seq", "t", "i", "v", "u", "i_load", "P_r_in", "P_r_in_dot", "stepped", "du_dt")
+    COLUMNS = ("seq", "t", "i", "v", "u", "i_load", "P_r_in", "P_r_in_dot", "stepped", "du_dt", "du_dt_next")
 
     def __init__(self, k_meas: int, k_zin: int, k_cmd: int, every: int = 8192):
         self.kinds = (k_meas, k_zin, k_cmd)
@@ -203,7 +203,7 @@ class TickIndex:
         else:
             m, z = self._m, self._z
             if m is not None and z is not None and m[0] == z[0] == vals[0]:
-                self.rows.extend((m[0], m[1], m[2], m[3], m[4], m[5], z[2], z[3], z[4], vals[2]))
+                self.rows.extend((m[0], m[1], m[2], m[3], m[4], m[5], z[2], z[3], z[4], vals[2], vals[3]))
             self._m = self._z = None
             return len(self.rows) >= self.every * len(self.COLUMNS)
         return False

@@ -28,7 +28,7 @@ HOLD_FROM_S = 0.05  # "holds" metric looks at t >= this
 TRACE_FIELDS = (
     "t", "i", "v", "u", "i_load", "P_l",  # true plant state at the sample instant
     "i_meas", "v_meas", "u_meas", "i_load_meas",  # what the controller saw
-    "du_dt", "du_dt_applied", "u_z", "y_z_true", "y_ref_true", "y_z", "y_ref",
+    "du_dt", "du_dt_next", "du_dt_applied", "u_z", "y_z_true", "y_ref_true", "y_z", "y_ref",
     "E", "E_t", "p", "y_z_balance", "eta", "P_r_out", "Qdot_r_out", "z_out0", "z_out1",
     "P_r_in", "P_r_in_dot",  # what the core was given (replay input)
 )
@@ -60,7 +60,8 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     plant = RLCPlant(scn.plant, load, dist)
     sensor = Sensor(scn.sensor, scn.seed)
     core = make_core(scn.controller, scn.model, T, tm.delay_samples, impl)
-    delay: deque[float] = deque([0.0] * tm.delay_samples)
+    delay: deque[tuple[float, float]] = deque([(0.0, 0.0)] * tm.delay_samples)
+    prev_plan = 0.0  # du/dt the last command that reached the plant planned for the next period
     loss = tm.command_loss
     loss_rng = np.random.default_rng([scn.seed, 0xC0DE])  # its own stream: sensor noise stays the same
 
@@ -95,18 +96,20 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
         inc.P_r_in_dot = -load.rate(t)
         out = core.step(s, inc)
         if tm.delay_samples:
-            delay.append(out.du_dt)
-            r_apply = delay.popleft()
+            delay.append((out.du_dt, out.du_dt_next))
+            r_apply, r_plan = delay.popleft()
         else:
-            r_apply = out.du_dt
+            r_apply, r_plan = out.du_dt, out.du_dt_next
         if loss and loss_rng.random() < loss:
-            r_apply = 0.0  # this command is lost: the source holds its voltage
+            r_apply = prev_plan  # this command is lost: its predecessor's plan acts (0 if that was lost too)
+            r_plan = 0.0
+        prev_plan = r_plan
         est = out.est
         if t >= t_warm:
             feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
         um = plant.u_m(t)
         pi, pv, pu = plant.i, plant.v, plant.u
-        row((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, out.du_dt, r_apply, out.u_z,
+        row((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, out.du_dt, out.du_dt_next, r_apply, out.u_z,
              R_true * pi * pi - (pu + um) * pi, y_ref_of(-P_l, pv), out.y_z, out.y_ref,
              est.E, est.E_t, est.p, est.y_z_balance, est.eta, est.P_r_out_port, est.Qdot_r_out_port,
              out.z_out0, out.z_out1, inc.P_r_in, inc.P_r_in_dot))

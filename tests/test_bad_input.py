@@ -131,7 +131,7 @@ def test_stale_measurements_degrade_and_fresh_ones_resume(daemon):
     assert daemon.state == "degraded" and daemon.last_cmd is not None
     assert feed(daemon, meas(1))  # fresh data: back by itself
     assert daemon.state == "active"
-    assert CMD.size == struct.calcsize("<BBQdd?")
+    assert CMD.size == struct.calcsize("<BBQddd?")
 
 
 def test_an_unwritable_log_directory_degrades_logging_not_control(tmp_path):

@@ -153,7 +153,7 @@ def test_a_recorder_whose_process_dies_at_once_finishes_its_file_and_exits(tmp_p
     code = (f"import os, sys; sys.path.insert(0, {str(ROOT)!r})\n"
             "from service.shmlog import RingRecorder\nfrom schemas.codec import CMD\n"
             f"r = RingRecorder({str(out)!r}, {{'a/cmd': ('energyctl.Command', CMD)}}, {{}})\n"
-            "for k in range(100): r.offer('a/cmd', k * 1e-4, (k, k * 1e-4, 0.0, False))\n"
+            "for k in range(100): r.offer('a/cmd', k * 1e-4, (k, k * 1e-4, 0.0, 0.0, False))\n"
             "print(r.pid, flush=True)\nos._exit(0)\n")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     pid = int(p.stdout.strip())

@@ -79,8 +79,8 @@ def test_reset_set_gains_and_views_match():
                 core.reset()
             o = core.step(Sample(*r[:6]), Incoming(r[6], r[7]))
             est = o.est
-            seen[j].append((o.du_dt, o.du_dt_raw, o.limited, o.u_z, o.y_z, o.y_ref, o.e, o.i_pred, o.v_pred,
-                            o.u_pred, o.z_out0, o.z_out1, o.seq, o.t, core.applied_rate(), core.steps,
+            seen[j].append((o.du_dt, o.du_dt_next, o.du_dt_raw, o.limited, o.u_z, o.y_z, o.y_ref, o.e, o.i_pred,
+                            o.v_pred, o.u_pred, o.z_out0, o.z_out1, o.seq, o.t, core.applied_rate(), core.steps,
                             *core.estimator.z_out, *core.estimator.fit.value, *core.estimator.fit.slope,
                             core.estimator.fit.count, *(getattr(est, f) for f in ("E", "E_t", "D", "tau", "p", "pdot",
                                                                                    "y_z", "y_z_balance", "eta",
@@ -88,7 +88,7 @@ def test_reset_set_gains_and_views_match():
                                                                                    "P_r_out_port",
                                                                                    "Qdot_r_out_port"))))
     assert seen[0] == seen[1]
-    assert seen[0][399][15] == 400 and seen[0][400][15] == 1  # reset really happened
+    assert seen[0][399][16] == 400 and seen[0][400][16] == 1  # reset really happened
 
 
 def test_batch_run_equals_step_by_step():
@@ -133,7 +133,42 @@ def test_any_input_same_answer(i, v, u, i2, P, Pd, dt, kind, mapping, d):
         except ZeroDivisionError:  # Python raises where C gives inf/NaN (then du/dt = 0); not compared
             return
         y = b.step(s, Incoming(P, Pd))
-        for f in ("du_dt", "du_dt_raw", "u_z", "y_ref", "i_pred", "v_pred", "u_pred", "z_out0"):
+        for f in ("du_dt", "du_dt_next", "du_dt_raw", "u_z", "y_ref", "i_pred", "v_pred", "u_pred", "z_out0"):
             p, q = getattr(x, f), getattr(y, f)
             assert p == q or (math.isnan(p) and math.isnan(q)), f
         assert x.limited == y.limited
+
+
+@pytest.mark.parametrize("plan", [True, False])
+@pytest.mark.parametrize("delay", [0, 1, 3])
+def test_skipped_and_held_samples_same_answer(plan, delay):
+    """Samples the loop skipped (seq gaps), samples answered by a hold (no step), and a batch with held rows:
+    the two cores keep the same history by sequence number, so every later command and plan agrees."""
+    scn, rows = _stream()
+    T = 1.0 / scn.timing.control_rate_hz
+    ctl = scn.controller.model_copy(update={"plan_next_period": plan})
+    cores = [ControlCore(ctl, scn.model, T, delay), make_core(ctl, scn.model, T, delay, "c")]
+    skipped = {50, 51, 120, 121, 122, 123, 124, 300}
+    held = {60, 61, 200, 301}
+    seen = [[], []]
+    for j, core in enumerate(cores):
+        for k, r in enumerate(rows):
+            if k in skipped:
+                continue
+            if k in held:
+                core.hold(k)
+                continue
+            o = core.step(Sample(*r[:6]), Incoming(r[6], r[7]))
+            seen[j].append((o.du_dt, o.du_dt_next, o.i_pred, o.v_pred, o.u_pred, core.applied_rate()))
+    assert seen[0] == seen[1]
+    assert any(s[1] != 0.0 for s in seen[0]) == plan
+    # the same stream as a batch (held rows: stepped = 0), with the plans
+    buf = np.array([(*r, 0.0 if k in held else 1.0) for k, r in enumerate(rows) if k not in skipped])
+    out = [(np.zeros(len(buf)), np.zeros(len(buf))) for _ in cores]
+    for core, (du, nxt) in zip((ControlCore(ctl, scn.model, T, delay), make_core(ctl, scn.model, T, delay, "c")),
+                               out, strict=True):
+        core.run_batch(buf, du, nxt)
+    assert out[0][0].tolist() == out[1][0].tolist() and out[0][1].tolist() == out[1][1].tolist()
+    stepped = [s for k, s in enumerate(buf[:, 8]) if s]
+    assert len(stepped) == len(seen[0])
+    assert out[0][0][buf[:, 8] == 1].tolist() == [s[0] for s in seen[0]]

@@ -350,7 +350,7 @@ def test_a_realtime_plant_starts_its_clock_at_the_controllers_first_answer():
     def answer(seq: int, t: float) -> None:
         if seq == 0:
             answered_0.append(time.monotonic())
-        pub.put(CMD.encode(seq, t, 0.0, False))
+        pub.put(CMD.encode(seq, t, 0.0, 0.0, False))
 
     def on_meas(m) -> None:
         v = MEAS.decode(m.payload.to_bytes())

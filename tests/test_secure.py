@@ -92,12 +92,12 @@ def test_only_the_controller_commands_and_only_the_plant_measures(secure):
         forged = {"cmd": [], "meas": []}
         for n, user in enumerate(("load", "operator", "monitor")):
             s = sessions[user]
-            s.put(f"{P}/source/cmd", CMD.encode(1000 + n, 0.0, 1e6, 0))  # a large, wrong command
+            s.put(f"{P}/source/cmd", CMD.encode(1000 + n, 0.0, 1e6, 0.0, 0))  # a large, wrong command
             s.put(f"{P}/source/meas", MEAS.encode(1000 + n, 0.0, 1.0, 80.0, 0.0, 0.0))
             round_trip(s)
             forged["cmd"].append(1000 + n)
             forged["meas"].append(1000 + n)
-        sessions["source"].put(f"{P}/source/cmd", CMD.encode(7, 0.0, 12.5, 0))
+        sessions["source"].put(f"{P}/source/cmd", CMD.encode(7, 0.0, 12.5, 0.0, 0))
         sessions["plant"].put(f"{P}/source/meas", MEAS.encode(7, 0.0, 1.0, 80.0, 0.0, 0.0))
 
         def drain(sub, codec, into):
