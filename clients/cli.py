@@ -251,7 +251,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             print(f"controller loop: {d['ticks']} ticks, overruns {d['overruns']} ({d['overrun_pct']:.3f} %), "
                   f"no new sample {d['no_new_sample']}, missing samples {d['missing_samples']}; "
                   f"tick exec p50 {ex.get('p50', 0):.1f} us p99 {ex.get('p99', 0):.1f} us; "
-                  f"period p99 {pe.get('p99', 0):.1f} us")
+                  f"period p99 {pe.get('p99', 0):.1f} us; late commands seen at "
+                  f"{res['daemon'].get('late_command_ticks', 0)} ticks")
         c = res["counters"]
         print("plant: " + ", ".join(f"{k} {v}" for k, v in c.items()))
         if "latency_us" in res:

@@ -172,6 +172,12 @@ class ControllerConfig(Strict):
         default=True, description="each command also carries du/dt planned for the period after it (the same law "
                                   "applied to the predicted state there); the plant applies that plan when the next "
                                   "command is missing or late, instead of holding u (packetized predictive control)")
+    late_detect_V: NonNeg = Field(
+        default=0.0, description="late-command detection, V: when the measured u moved over the last period by more "
+                                 "than this away from what the command for that period implied, commands are not "
+                                 "arriving in time, and the prediction takes the ones still in flight as not acting "
+                                 "(du/dt = 0) until u follows the commands again; 0 = off. Set it above the u "
+                                 "sensor's noise (several times sqrt(2) sigma)")
     limits: LimitsConfig = LimitsConfig()
 
 

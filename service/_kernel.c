@@ -26,8 +26,8 @@ enum {
     O_DU = 0, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1,
     O_SEQ, O_T, O_STEPS, O_COUNT, O_HAS_EST,
     O_EST = 17, /* 18 RLCEnergy fields, in its __slots__ order */
-    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42, O_DU_NEXT = 43,
-    O_N = 44
+    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42, O_DU_NEXT = 43, O_LATE = 44,
+    O_N = 45
 };
 enum { E_E = 0, E_ET, E_D, E_TAU, E_P, E_PDOT, E_PU, E_QDU, E_PL, E_QDL, E_PM, E_YZ, E_YZB, E_ETA, E_PRO, E_QRO,
        E_PROP, E_QROP };
@@ -39,7 +39,10 @@ typedef struct {
     int d, n_pred;
     /* gains and limits (set_params) */
     int kind, continuous, cancel_Et, plan;
-    double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC;
+    double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC, late_tol;
+    /* late-command detection: the last step's seq and measured u, and the verdict */
+    double last_seq_u, last_u;
+    int late;
     /* estimator: EwLineFit over (i, v, i_2) and the z_out integrals */
     int has_t;
     double t_last, S0, S1, S2, Sy[3], Say[3], ref[3];
@@ -163,6 +166,9 @@ static void kernel_reset(Kernel *k)
         k->pending[3 * j + 1] = k->pending[3 * j + 2] = 0.0;
     }
     k->r_prev = 0.0;
+    k->late = 0;
+    k->last_seq_u = -2.0;
+    k->last_u = 0.0;
     k->o[O_STEPS] = 0.0;
 }
 
@@ -364,7 +370,12 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
     const double u_min = k->u_min, u_max = k->u_max;
     const int d = k->d;
     double *o = k->o;
-    double applied = d > 0 ? issued(k, seq - d) : k->r_prev;
+    if (d > 0 && k->late_tol > 0.0 && k->last_seq_u == seq - 1.0)
+        k->late = fabs((su - k->last_u) - T * issued(k, seq - 1.0 - d)) > k->late_tol;
+    k->last_seq_u = seq;
+    k->last_u = su;
+    const int late = k->late;
+    double applied = d == 0 ? k->r_prev : late ? 0.0 : issued(k, seq - d);
 
     /* estimator */
     double y[3] = {si_, sv, si2};
@@ -391,7 +402,7 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
     double Pdot = -P_in_dot;
     double i_p = si_, v_p = sv, u_p = su;
     for (int j = 0; j < d; j++) {
-        double r_j = issued(k, seq - d + j);
+        double r_j = late ? 0.0 : issued(k, seq - d + j);
         predict(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C);
         if (u_p > u_max)
             u_p = u_max;
@@ -418,6 +429,7 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
         plan = law(k, i1, v1, u1, P_meas, P_in, P_in_dot, d + 1, r, &raw1, &u_z1);
     }
     o[O_LIMITED] = (r != raw) ? 1.0 : 0.0;
+    o[O_LATE] = late ? 1.0 : 0.0;
     o[O_DU_RAW] = raw;
     o[O_DU] = r;
     o[O_DU_NEXT] = plan;
@@ -464,11 +476,11 @@ static void Kernel_dealloc(Kernel *self)
 
 static PyObject *Kernel_set_params(Kernel *self, PyObject *args)
 {
-    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)d", &self->kind, &self->continuous, &self->cancel_Et,
+    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)dd", &self->kind, &self->continuous, &self->cancel_Et,
                           &self->plan,
                           &self->v_ref, &self->K, &self->alpha, &self->phi, &self->decay, &self->lK1, &self->lK2,
                           &self->bK1, &self->bK2, &self->bK3, &self->bPi, &self->u_min, &self->u_max, &self->r_max,
-                          &self->i_floor, &self->keC))
+                          &self->i_floor, &self->keC, &self->late_tol))
         return NULL;
     Py_RETURN_NONE;
 }

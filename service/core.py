@@ -156,14 +156,15 @@ def y_reference(P_in: float, v: float, v_ref: float, k_e_half_C: float) -> float
 class Output:
     """What one step returns (reused each step; copy what you keep)."""
 
-    __slots__ = ("seq", "t", "du_dt", "du_dt_next", "du_dt_raw", "u_z", "y_z", "y_ref", "e", "limited", "est", "z_out0",
-                 "z_out1", "i_pred", "v_pred", "u_pred")
+    __slots__ = ("seq", "t", "du_dt", "du_dt_next", "du_dt_raw", "u_z", "y_z", "y_ref", "e", "limited", "late", "est",
+                 "z_out0", "z_out1", "i_pred", "v_pred", "u_pred")
 
     def __init__(self) -> None:
         self.seq = 0
         self.t = self.du_dt = self.du_dt_next = self.du_dt_raw = self.u_z = self.y_z = self.y_ref = self.e = 0.0
         self.i_pred = self.v_pred = self.u_pred = self.z_out0 = self.z_out1 = 0.0
         self.limited = False
+        self.late = False  # late commands detected at this sample (late_detect_V): in-flight ones taken as 0
         self.est: RLCEnergy | None = None
 
 
@@ -218,6 +219,7 @@ class CoreBase:
         self._lim = (lim.u_min_V, lim.u_max_V, lim.du_dt_max_V_per_s, lim.i_floor_A)
         self._keC = 0.5 * c.K_E_per_s * self._C if c.regulation == "energy" else 0.0
         self._plan = c.plan_next_period
+        self._late_tol = c.late_detect_V
 
     def run_batch(self, rows, du_out, next_out=None) -> None:
         """Step n rows (n x w floats, w >= 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped, then anything;
@@ -260,6 +262,9 @@ class ControlCore(CoreBase):
         # d + 1 samples answered (None: no sample)
         self.pending: list[tuple] = [(None, 0.0, 0.0)] * (self.d + 1)
         self.r_prev = 0.0
+        self.late = False
+        self._last_seq = -2  # seq and measured u of the last step (late-command detection)
+        self._last_u = 0.0
         self.estimator.reset()
         self.steps = 0
 
@@ -293,7 +298,14 @@ class ControlCore(CoreBase):
         T, d = self.T, self.d
         out = self.out
         seq = s.seq
-        est = self.estimator.update(s.t, s.i, s.v, s.u, s.i_load, self.issued(seq - d) if d > 0 else self.r_prev)
+        if d > 0 and self._late_tol > 0.0 and self._last_seq == seq - 1:
+            # u over the last period against the rate that was to act there: off by more than the tolerance ->
+            # that command did not act in time, and the ones in flight are taken as not acting either
+            self.late = abs((s.u - self._last_u) - T * self.issued(seq - 1 - d)) > self._late_tol
+        self._last_seq, self._last_u = seq, s.u
+        late = self.late
+        est = self.estimator.update(s.t, s.i, s.v, s.u, s.i_load,
+                                    self.r_prev if d == 0 else 0.0 if late else self.issued(seq - d))
         if est is not None:
             out.est = est
             out.z_out0, out.z_out1 = self.estimator.z_out
@@ -304,7 +316,7 @@ class ControlCore(CoreBase):
         i_p, v_p, u_p = s.i, s.v, s.u
         n = self.n_pred
         for k in range(d):
-            r_k = self.issued(seq - d + k)
+            r_k = 0.0 if late else self.issued(seq - d + k)
             i_p, v_p, u_p = predict(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, n, R, L, C)
             if u_p > u_max:
                 u_p = u_max
@@ -328,6 +340,7 @@ class ControlCore(CoreBase):
                 u1 = u_min
             plan = self._law(i1, v1, u1, P_meas, inc, d + 1, r)[0]
         out.limited = r != raw
+        out.late = late
         out.du_dt_raw = raw
         out.du_dt = r
         out.du_dt_next = plan

@@ -139,6 +139,7 @@ class Daemon:
         self.recorder = None
         self._idle = 0
         self.restarts = 0
+        self.late_ticks = 0  # ticks at which the core saw its commands not acting in time (late_detect_V)
         self.degraded_reason = ""
         self.reference = "none"
         self._pending_state: str | None = None
@@ -527,6 +528,8 @@ class Daemon:
         if stepped:
             out = self.core.step(s, Incoming(P_in, P_in_dot))
             du, du_next, limited = out.du_dt, out.du_dt_next, out.limited
+            if out.late:
+                self.late_ticks += 1
             est = out.est
             self._feasibility(v[1], est)
         else:
@@ -640,6 +643,7 @@ class Daemon:
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
+            "late_command_ticks": self.late_ticks,
             "loop_delay": self._loop_delay(),
             "logging": self._logging_status(),
         }

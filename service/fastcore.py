@@ -19,7 +19,7 @@ KIND_CODE = {"fixed": 0, "lqr": 1, "bm": 2, "fblc": 3, "smc": 4}
 # output buffer layout: service/_kernel.c, enum O_*
 (O_DU, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1, O_SEQ, O_T, O_STEPS,
  O_COUNT, O_HAS_EST) = range(17)
-O_EST, O_FITV, O_FITS, O_ZRUN, O_DU_NEXT = 17, 35, 38, 41, 43
+O_EST, O_FITV, O_FITS, O_ZRUN, O_DU_NEXT, O_LATE = 17, 35, 38, 41, 43, 44
 ROW = 9  # run_batch input row: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped
 
 
@@ -65,6 +65,10 @@ class KernelOutput:
     @property
     def limited(self) -> bool:
         return self._b[O_LIMITED] != 0.0
+
+    @property
+    def late(self) -> bool:
+        return self._b[O_LATE] != 0.0
 
     @property
     def seq(self) -> int:
@@ -122,7 +126,7 @@ class CompiledCore(CoreBase):
     def _push(self) -> None:
         v_ref, K, cancel_Et, alpha, phi, decay = self._gains
         self._k.set_params(KIND_CODE[self._kind], int(self._continuous), int(bool(cancel_Et)), int(self._plan),
-                           (v_ref, K, alpha, phi, decay), self._lqr, self._bm, self._lim, self._keC)
+                           (v_ref, K, alpha, phi, decay), self._lqr, self._bm, self._lim, self._keC, self._late_tol)
 
     def reset(self) -> None:
         self._k.reset()

@@ -303,3 +303,52 @@ def test_the_prediction_follows_the_plant_across_skipped_samples():
     du_tick, di_tick = _skipping_loop(renumber=True)
     assert du_tick > 1e-4 and du_tick > 1e6 * du
     assert di_tick > 10 * di
+
+
+def _late_burst_run(late_detect_V: float) -> tuple[float, int]:
+    """The embedded demo at 1 kHz, 2 samples of delay, K = 1500/s, 20 V per period slew: a burst of 10 commands
+    (and their plans) that all arrive too late, as the realtime stack saw on this VM. Returns (max |v - 80| / 80
+    in % after the burst, or inf if v left 40..160 V; ticks the core flagged late)."""
+    from pathlib import Path
+
+    from service.core import make_core
+    from service.plant import RLCPlant, Sensor, load_current
+    from service.profiles import Profile
+    from service.sim import substeps
+
+    scn = load_scenario(Path(__file__).parents[1] / "clients" / "embedded" / "demo.toml",
+                        ["timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5", "controller.K_per_s=1500.0",
+                         "controller.limits.du_dt_max_V_per_s=20000.0", f"controller.late_detect_V={late_detect_V}"])
+    T, d = 1e-3, 2
+    load = Profile(scn.load, scn.base_dir)
+    plant = RLCPlant(scn.plant, load, None)
+    sensor = Sensor(scn.sensor, scn.seed)
+    core = make_core(scn.controller, scn.model, T, d)
+    late = set(range(500, 510))
+    sent: dict[int, tuple[float, float]] = {}
+    v, flagged = [], 0
+    for k in range(800):
+        j = k - d
+        r = sent[j][0] if j in sent and j not in late else sent[j - 1][1] if j - 1 in sent and j - 1 not in late \
+            else 0.0
+        P = load.value(plant.t)
+        s = sensor.measure(k, plant.t, plant.i, plant.v, plant.u, load_current(P, plant.v, plant.v_min))
+        o = core.step(s, Incoming(-P, -load.rate(plant.t)))
+        sent[k] = (o.du_dt, o.du_dt_next)
+        flagged += o.late
+        plant.advance(r, T, substeps(T, scn.timing.plant_step_s))
+        if not 40.0 < plant.v < 160.0:
+            return float("inf"), flagged
+        v.append(plant.v)
+    return float(np.abs(np.array(v[500:]) - 80.0).max() / 0.8), flagged
+
+
+def test_a_burst_of_late_commands_is_detected_from_the_measured_u():
+    """Without detection the prediction keeps counting on commands that never acted, each new command corrects
+    the last one's imagined effect, and v diverges; with it (u's change over a period off by more than 0.3 V
+    from the command meant for it) the in-flight commands are taken as not acting and v stays near 80 V."""
+    dev_off, flagged_off = _late_burst_run(0.0)
+    dev_on, flagged_on = _late_burst_run(0.3)
+    assert flagged_off == 0 and dev_off == float("inf")
+    assert 3 <= flagged_on <= 30
+    assert dev_on < 5.0

@@ -36,6 +36,7 @@ CASES = [
     ("bm", "exact", 2, []),
     ("fixed", "exact", 0, []),
     ("fblc", "exact", 3, ["timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5"]),  # 4 RK4 steps per period
+    ("fblc", "exact", 2, ["controller.late_detect_V=0.01", "timing.command_loss=0.1"]),  # late commands detected
 ]
 
 
@@ -53,6 +54,7 @@ def test_compiled_core_equals_python_core_bit_for_bit(kind, mapping, delay, extr
     assert same(py.trace, c.trace) == []
     assert len(py.trace["t"]) == round(0.08 * scn.timing.control_rate_hz)
     assert np.ptp(py.trace["du_dt"]) > 0 or kind == "fixed"  # the comparison saw commands that moved
+    assert np.array_equal(py.trace["du_dt_next"], c.trace["du_dt_next"])
 
 
 def _stream(n: int = 600):
@@ -146,7 +148,7 @@ def test_skipped_and_held_samples_same_answer(plan, delay):
     the two cores keep the same history by sequence number, so every later command and plan agrees."""
     scn, rows = _stream()
     T = 1.0 / scn.timing.control_rate_hz
-    ctl = scn.controller.model_copy(update={"plan_next_period": plan})
+    ctl = scn.controller.model_copy(update={"plan_next_period": plan, "late_detect_V": 0.002 if plan else 0.0})
     cores = [ControlCore(ctl, scn.model, T, delay), make_core(ctl, scn.model, T, delay, "c")]
     skipped = {50, 51, 120, 121, 122, 123, 124, 300}
     held = {60, 61, 200, 301}
@@ -159,9 +161,10 @@ def test_skipped_and_held_samples_same_answer(plan, delay):
                 core.hold(k)
                 continue
             o = core.step(Sample(*r[:6]), Incoming(r[6], r[7]))
-            seen[j].append((o.du_dt, o.du_dt_next, o.i_pred, o.v_pred, o.u_pred, core.applied_rate()))
+            seen[j].append((o.du_dt, o.du_dt_next, o.i_pred, o.v_pred, o.u_pred, o.late, core.applied_rate()))
     assert seen[0] == seen[1]
     assert any(s[1] != 0.0 for s in seen[0]) == plan
+    assert any(s[5] for s in seen[0]) == (plan and delay > 0)  # the recorded u does not follow: "late" seen
     # the same stream as a batch (held rows: stepped = 0), with the plans
     buf = np.array([(*r, 0.0 if k in held else 1.0) for k, r in enumerate(rows) if k not in skipped])
     out = [(np.zeros(len(buf)), np.zeros(len(buf))) for _ in cores]
