@@ -3,7 +3,7 @@
 ``Rig`` starts controller, load and plant (and optionally a router between them) on a free loopback
 port, lets a test or a bench signal any of them, and reads the controller's status and log.
 ``recovery`` is ``energyctl bench recovery``: after the plant or the neighbour comes back, how long
-(in plant time, lockstep) until v is within +-2 % of v_ref again for good.
+(in plant time; lockstep, or realtime with ``--realtime``) until v is within +-2 % of v_ref again for good.
 """
 
 from __future__ import annotations
@@ -31,12 +31,13 @@ class Rig:
 
     def __init__(self, scn: Scenario, workdir: str | Path | None = None, *, lockstep: bool = True,
                  router: bool = False, rate_hz: float | None = None, duration_s: float | None = None,
-                 comp: dict | None = None, plant: dict | None = None, load: dict | None = None):
+                 comp: dict | None = None, plant: dict | None = None, load: dict | None = None,
+                 controller_delay: int | None = None):
         self.dir = Path(workdir or tempfile.mkdtemp(prefix="energyctl-faults-"))
         self.dir.mkdir(parents=True, exist_ok=True)
         self.ep = f"tcp/127.0.0.1:{free_tcp_port()}"
         self.plant_out = self.dir / "plant.mcap"
-        c, p, ld = configs_from_scenario(scn, self.ep, lockstep, rate_hz, out=str(self.plant_out),
+        c, p, ld = configs_from_scenario(scn, self.ep, lockstep, rate_hz, controller_delay, out=str(self.plant_out),
                                          duration_s=duration_s)
         self.router = router
         if router:  # everyone is a client of the router, which is the one that listens
@@ -169,15 +170,21 @@ def max_dev_pct(t: np.ndarray, v: np.ndarray, t0: float, t1: float, v_ref: float
     return float(np.max(np.abs(v[sel] - v_ref)) / v_ref * 100) if np.any(sel) else None
 
 
-def recovery(scn: Scenario, workdir: str | None = None, progress=print) -> dict:
-    """``energyctl bench recovery``: kill -9 the plant and the neighbour, bring them back, time the recovery."""
-    res: dict = {"scenario": scn.name, "mode": "lockstep (times are plant time)"}
+def recovery(scn: Scenario, workdir: str | None = None, progress=print, realtime: bool = False,
+             rate_hz: float | None = None, controller_delay: int | None = None) -> dict:
+    """``energyctl bench recovery``: kill -9 the plant and the neighbour, bring them back, time the recovery.
+    realtime: wall-clock pacing at rate_hz with a controller_delay-sample schedule, instead of lockstep."""
+    res: dict = {"scenario": scn.name,
+                 "mode": f"realtime at {rate_hz:g} Hz, {controller_delay}-sample schedule (times are plant time)"
+                 if realtime else "lockstep (times are plant time)"}
     v_ref = scn.controller.v_ref_V
     base = Path(workdir or tempfile.mkdtemp(prefix="energyctl-recovery-"))
+    pace = {"lockstep": not realtime, "rate_hz": rate_hz if realtime else None,
+            "controller_delay": controller_delay if realtime else None}
 
     # 1. the plant dies and a new one starts (its seq restarts at 0: the controller re-initialises)
     progress("plant: kill -9 at t = 0.15 s, then a new plant process ...")
-    with Rig(scn, base / "plant", duration_s=1.0) as rig:
+    with Rig(scn, base / "plant", duration_s=1.0, **pace) as rig:
         rig.start("daemon")
         rig.start("load")
         rig.start("plant")
@@ -198,10 +205,13 @@ def recovery(scn: Scenario, workdir: str | None = None, progress=print) -> dict:
         res["plant_restart_counters"] = r2["counters"]
 
     # 2. the neighbour dies and comes back; with and without a local reference meanwhile
-    for label, local in (("hold", None), ("measured", "measured"), ("constant_1200W", 1200.0)):
+    # (realtime falls back to the measured load power by default: there "hold" is not run)
+    labels = (("hold", None), ("measured", "measured"), ("constant_1200W", 1200.0))
+    for label, local in labels[1:] if realtime else labels:
         progress(f"neighbour ({label}): kill -9 the load at t = 0.15 s, back at t = 0.30 s ...")
         comp = {"local_reference_W": local} if local is not None else {}
-        with Rig(scn, base / f"load-{label}", duration_s=0.6, comp=comp) as rig:
+        # realtime: the new load process takes ~0.5 s of wall (= plant) time to start; the plant runs on past it
+        with Rig(scn, base / f"load-{label}", duration_s=4.0 if realtime else 0.6, comp=comp, **pace) as rig:
             rig.start("daemon")
             rig.start("load")
             rig.start("plant")
