@@ -56,7 +56,6 @@ class RLCPlant:
         R, L, C, vmin = self.R, self.L, self.C, self.v_min
         umin, umax = self.u_min, self.u_max
         h = T / n_sub
-        hh = 0.5 * h
         t, i, v, u = self.t, self.i, self.v, self.u
         Pa = self.load.value(t)
         Pb = self.load.value(t + T)
@@ -68,47 +67,75 @@ class RLCPlant:
             ma = dm = 0.0
         u_end = u + r * T
         clip = not (umin <= u <= umax and umin <= u_end <= umax)
-        vmin2 = vmin * vmin
-        for k in range(n_sub):
-            P0 = Pa + k * dP
-            P1 = P0 + dP
-            Pm = P0 + 0.5 * dP
-            m0 = ma + k * dm
-            mm = m0 + 0.5 * dm
-            m1 = m0 + dm
-            # the source ramps at r and is clipped to its range (exact for u)
-            if clip:
-                um_ = min(max(u + r * hh, umin), umax)
-                ub = min(max(u + r * h, umin), umax)
-            else:
-                um_ = u + r * hh
-                ub = u + r * h
-            # k1
-            i2 = P0 / v if v >= vmin else P0 * v / vmin2
-            ki1 = (u + m0 - R * i - v) / L
-            kv1 = (i - i2) / C
-            # k2
-            ii = i + hh * ki1
-            vv = v + hh * kv1
-            i2 = Pm / vv if vv >= vmin else Pm * vv / vmin2
-            ki2 = (um_ + mm - R * ii - vv) / L
-            kv2 = (ii - i2) / C
-            # k3
-            ii = i + hh * ki2
-            vv = v + hh * kv2
-            i2 = Pm / vv if vv >= vmin else Pm * vv / vmin2
-            ki3 = (um_ + mm - R * ii - vv) / L
-            kv3 = (ii - i2) / C
-            # k4
-            ii = i + h * ki3
-            vv = v + h * kv3
-            i2 = P1 / vv if vv >= vmin else P1 * vv / vmin2
-            ki4 = (ub + m1 - R * ii - vv) / L
-            kv4 = (ii - i2) / C
-            i += h / 6.0 * (ki1 + 2.0 * ki2 + 2.0 * ki3 + ki4)
-            v += h / 6.0 * (kv1 + 2.0 * kv2 + 2.0 * kv3 + kv4)
-            u = ub
-        self.t, self.i, self.v, self.u = t + T, i, v, u
+        self.i, self.v, self.u = plant_steps(R, L, C, vmin, umin, umax, float(clip), r, h, float(n_sub), Pa, dP, ma,
+                                             dm, i, v, u)
+        self.t = t + T
+
+
+def rk4_steps(R: float, L: float, C: float, vmin: float, umin: float, umax: float, clip: float, r: float, h: float,
+              n_sub: float, Pa: float, dP: float, ma: float, dm: float, i: float, v: float,
+              u: float) -> tuple[float, float, float]:
+    """RLCPlant.advance's integration: n_sub RK4 steps of h seconds from (i, v, u) at source rate r (V/s), load
+    power Pa + k dP at substep k (W), disturbance ma + k dm (V); u clipped to [umin, umax] when clip. The
+    compiled twin (service/_kernel.c plant_steps) does the same operations in the same order."""
+    hh = 0.5 * h
+    vmin2 = vmin * vmin
+    for k in range(int(n_sub)):
+        P0 = Pa + k * dP
+        P1 = P0 + dP
+        Pm = P0 + 0.5 * dP
+        m0 = ma + k * dm
+        mm = m0 + 0.5 * dm
+        m1 = m0 + dm
+        # the source ramps at r and is clipped to its range (exact for u)
+        if clip:
+            um_ = min(max(u + r * hh, umin), umax)
+            ub = min(max(u + r * h, umin), umax)
+        else:
+            um_ = u + r * hh
+            ub = u + r * h
+        # k1
+        i2 = P0 / v if v >= vmin else P0 * v / vmin2
+        ki1 = (u + m0 - R * i - v) / L
+        kv1 = (i - i2) / C
+        # k2
+        ii = i + hh * ki1
+        vv = v + hh * kv1
+        i2 = Pm / vv if vv >= vmin else Pm * vv / vmin2
+        ki2 = (um_ + mm - R * ii - vv) / L
+        kv2 = (ii - i2) / C
+        # k3
+        ii = i + hh * ki2
+        vv = v + hh * kv2
+        i2 = Pm / vv if vv >= vmin else Pm * vv / vmin2
+        ki3 = (um_ + mm - R * ii - vv) / L
+        kv3 = (ii - i2) / C
+        # k4
+        ii = i + h * ki3
+        vv = v + h * kv3
+        i2 = P1 / vv if vv >= vmin else P1 * vv / vmin2
+        ki4 = (ub + m1 - R * ii - vv) / L
+        kv4 = (ii - i2) / C
+        i += h / 6.0 * (ki1 + 2.0 * ki2 + 2.0 * ki3 + ki4)
+        v += h / 6.0 * (kv1 + 2.0 * kv2 + 2.0 * kv3 + kv4)
+        u = ub
+    return i, v, u
+
+
+def _compiled_steps():
+    """The compiled integrator unless not built or ENERGYCTL_CORE=python (the reference everywhere)."""
+    import os
+
+    if os.environ.get("ENERGYCTL_CORE", "auto") == "python":
+        return rk4_steps
+    try:
+        from ._kernel import plant_steps as compiled
+    except ImportError:
+        return rk4_steps
+    return compiled
+
+
+plant_steps = _compiled_steps()
 
 
 class Sensor:
