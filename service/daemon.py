@@ -40,6 +40,7 @@ from .types import Incoming, Sample
 STATES = ("configured", "active", "inactive", "shutdown")
 HIST = 2048  # ticks of command history for the measured loop delay (a power of two)
 LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
+REJECT_EVENT_EVERY_NS = 10_000_000  # at most one recorded reject event per reason this often (all are counted)
 
 
 class LoopStats:
@@ -140,6 +141,8 @@ class Daemon:
         self._idle = 0
         self.restarts = 0
         self.late_ticks = 0  # ticks at which the core saw its commands not acting in time (late_detect_V)
+        self._reject_events: dict[str, tuple[int, int]] = {}  # reason -> (loop ns of its last event, rejects since)
+        self._now_ns = 0  # the loop's clock at the tick being handled
         self.degraded_reason = ""
         self.reference = "none"
         self._pending_state: str | None = None
@@ -380,13 +383,23 @@ class Daemon:
                 break
 
     def _reject(self, reason: str, detail: str = "") -> None:
-        """Count by reason class (bounded keys); keep the detail of the last one."""
+        """Count by reason class (bounded keys); keep the detail of the last one; record it as a diagnostics
+        event, at most one per reason per REJECT_EVENT_EVERY_NS of the loop's clock (a diverged plant is rejected
+        at every sample: a flood of events outgrew the recorder's event queue), saying how many it stands for."""
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        reason = f"{reason} ({detail})" if detail else reason
-        self.last_reject = reason
+        text = f"{reason} ({detail})" if detail else reason
+        self.last_reject = text
         if self.recorder is not None:
+            now = self._now_ns
+            last_ns, held = self._reject_events.get(reason, (None, 0))
+            if last_ns is not None and 0 <= now - last_ns < REJECT_EVENT_EVERY_NS:
+                self._reject_events[reason] = (last_ns, held + 1)
+                return
+            self._reject_events[reason] = (now, 0)
             t = self.last_sample[1] if self.last_sample else 0.0
-            self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "reject", reason))
+            if held:
+                text = f"{text} [and {held} more since the last of these]"
+            self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "reject", text))
 
     def _poll_neighbours(self, now: int) -> None:
         if self.alive_sub is not None:
@@ -471,6 +484,7 @@ class Daemon:
         self._hist_seq[j], self._hist_u[j], self._hist_r[j] = seq, u, du
 
     def _tick(self, payload: bytes, now: int) -> None:
+        self._now_ns = now
         self._poll_neighbours(now)
         try:
             v = MEAS.decode(payload)

@@ -156,3 +156,41 @@ def test_an_unwritable_log_directory_degrades_logging_not_control(tmp_path):
     finally:
         d.close()
     assert d.recorder.error and d.recorder.written == 0
+
+
+def test_rejections_are_recorded_as_diagnostics_without_flooding_the_log(tmp_path):
+    """Each rejected class is a diagnostics event in the MCAP naming its field; a plant rejected at every sample
+    (it diverged) gives at most one event per reason per REJECT_EVENT_EVERY_NS of the loop's clock, each saying
+    how many it stands for, while status counts every one."""
+    from clients.faults import read_messages
+    from service.daemon import REJECT_EVENT_EVERY_NS
+
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
+    comp.update({"neighbour_stale_s": 10.0, "log_dir": str(tmp_path)})
+    comp["loop"]["trigger"] = "clock"
+    comp["forecast"] = {"enabled": False}
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    try:
+        nb = d.neighbours[0]
+        nb.count, nb.P, nb.rx_ns = 1, 1200.0, 0
+        assert d.recorder.wait_ready()
+        feed(d, meas(0))
+        feed(d, MEAS.struct.pack(0xE1, 1, 1, 1e-4, math.nan, 80.0, 80.0, 15.0))
+        feed(d, meas(2, i=2e4))
+        n_flood = 1000  # 0.1 s of samples at 10 kHz, all with v out of range
+        for k in range(3, 3 + n_flood):
+            feed(d, meas(k, v=5000.0), now=k * 100_000)  # the loop's clock at 10 kHz
+        assert d.rejected["meas.v: out of range"] == n_flood
+    finally:
+        d.close()
+    ev = [e for e in read_messages(d.log_path, "/events") if e["kind"] == "reject"]
+    details = [e["detail"] for e in ev]
+    assert any(x.startswith("meas.i: invalid") for x in details)
+    assert any(x.startswith("meas.i: out of range") for x in details)
+    flood = [x for x in details if x.startswith("meas.v: out of range")]
+    every = REJECT_EVENT_EVERY_NS // 100_000  # samples per event
+    assert len(flood) == -(-n_flood // every)  # one per 10 ms: 10, not 1000
+    said = len(flood) + sum(int(x.split("[and ")[1].split()[0]) for x in flood if "[and " in x)
+    assert said == n_flood - (every - 1)  # all but the last stretch, still waiting for its event
