@@ -491,19 +491,27 @@ static PyObject *Kernel_reset(Kernel *self, PyObject *Py_UNUSED(ignored))
     Py_RETURN_NONE;
 }
 
+/* n float arguments of a METH_FASTCALL function into x; 0 with an exception set if they are not that */
+static int float_args(PyObject *const *args, Py_ssize_t nargs, int n, double *x, const char *usage)
+{
+    if (nargs != n) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d arguments", usage, n);
+        return 0;
+    }
+    for (int j = 0; j < n; j++) {
+        x[j] = PyFloat_AsDouble(args[j]);
+        if (x[j] == -1.0 && PyErr_Occurred())
+            return 0;
+    }
+    return 1;
+}
+
 /* step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot) -> bool (estimator took the sample) */
 static PyObject *Kernel_step(Kernel *self, PyObject *const *args, Py_ssize_t nargs)
 {
     double x[8];
-    if (nargs != 8) {
-        PyErr_SetString(PyExc_TypeError, "step() takes 8 arguments: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot");
+    if (!float_args(args, nargs, 8, x, "step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot)"))
         return NULL;
-    }
-    for (int j = 0; j < 8; j++) {
-        x[j] = PyFloat_AsDouble(args[j]);
-        if (x[j] == -1.0 && PyErr_Occurred())
-            return NULL;
-    }
     int took = kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
     return PyBool_FromLong(took);
 }
@@ -609,15 +617,9 @@ static PyTypeObject KernelType = {
 static PyObject *plant_steps(PyObject *Py_UNUSED(mod), PyObject *const *args, Py_ssize_t nargs)
 {
     double x[17];
-    if (nargs != 17) {
-        PyErr_SetString(PyExc_TypeError, "plant_steps() takes 17 arguments");
+    if (!float_args(args, nargs, 17, x, "plant_steps(R, L, C, v_min, u_min, u_max, clip, r, h, n_sub, Pa, dP, ma, dm, "
+                                        "i, v, u)"))
         return NULL;
-    }
-    for (int j = 0; j < 17; j++) {
-        x[j] = PyFloat_AsDouble(args[j]);
-        if (x[j] == -1.0 && PyErr_Occurred())
-            return NULL;
-    }
     const double R = x[0], L = x[1], C = x[2], vmin = x[3], umin = x[4], umax = x[5], r = x[7], h = x[8];
     const int clip = x[6] != 0.0;
     const long n_sub = (long)x[9];
