@@ -62,6 +62,48 @@ def _trace_recorder(cfg: PlantPeerConfig, t_meas: str, t_cmd: str, t_plant: str)
     return RingRecorder(out, topics, {"plant_config": {"json": cfg.model_dump_json()}})
 
 
+class CommandSchedule:
+    """Which du/dt acts over each period, from the commands that arrived (pure: no clock, no I/O).
+
+    The command answering sample j acts over period j + d (d = 0 in lockstep, where the delay line comes after).
+    A command missing at its period (late or lost) is replaced by the plan its predecessor carried (du_dt_next,
+    which is for exactly that period); with neither, the source holds its voltage (du/dt = 0). A command arriving
+    after its period is dropped and counted late, but its plan still serves the period after. ``counts``:
+    late, planned_periods, stale_periods (periods with neither)."""
+
+    def __init__(self, d: int):
+        self.d = d
+        self.inbox: dict[int, tuple[float, float]] = {}  # seq answered -> (du/dt, planned du/dt)
+        self.prev = (-1, 0.0)  # (seq, plan) of the newest command taken, in time or late
+        self.counts = {"late": 0, "planned_periods": 0, "stale_periods": 0}
+
+    def arrive(self, seq: int, du_dt: float, du_dt_next: float) -> None:
+        self.inbox[seq] = (du_dt, du_dt_next)
+
+    def take(self, k: int) -> tuple[float, bool]:
+        """(du/dt over period k, whether it is the command meant for k rather than a plan or a hold)."""
+        j = k - self.d
+        got = self.inbox.pop(j, None)
+        for old in [q for q in self.inbox if q < j]:
+            late = self.inbox.pop(old)
+            self.counts["late"] += 1
+            if old == j - 1:  # too late for its own period, in time to plan this one
+                self.prev = (old, late[1])
+        if got is not None:
+            self.prev = (j, got[1])
+            return got[0], True
+        return self.fallback(j), False
+
+    def fallback(self, j: int) -> float:
+        """du/dt for the period of a missing command answering sample j: the plan of the one answering j - 1 if it
+        came, else 0 (hold)."""
+        if self.prev[0] == j - 1:
+            self.counts["planned_periods"] += 1
+            return self.prev[1]
+        self.counts["stale_periods"] += 1
+        return 0.0
+
+
 def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> dict:
     """Run the plant for cfg.duration_s; returns metrics, latency and counters (and writes cfg.out)."""
     load = Profile(cfg.load, cfg.base_dir)
@@ -91,8 +133,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
         # missed: samples whose command never arrived; late: arrived after its sampling instant (dropped);
         # planned_periods: periods run on the plan the previous command carried (its du_dt_next), its successor
         # missing; stale_periods: periods with neither (u held)
-        counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "late": 0, "planned_periods": 0,
-                    "stale_periods": 0, "rejected": 0}
+        counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "rejected": 0}
         send_ns = array("q", bytes(8 * N))
         lat_ns = array("q")
         delay: deque[float] = deque([0.0] * cfg.delay_samples)
@@ -102,9 +143,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
         timeout_ns = int(cfg.lockstep_timeout_s * 1e9)
         period_ns = int(round(T * 1e9))
         next_ns = now_ns() + period_ns
-        d_rt = cfg.realtime_apply_delay_samples
-        inbox: dict[int, tuple] = {}  # realtime: (du/dt, planned du/dt) of commands that arrived, by the seq answered
-        prev = (-1, 0.0)  # (seq, planned du/dt) of the last command taken: what acts if the next one is missing
+        sched = CommandSchedule(0 if lockstep else cfg.realtime_apply_delay_samples)
 
         def take(item) -> tuple | None:
             t_rx, payload = item
@@ -135,7 +174,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                     continue
                 c = take(item)
                 if c is not None:
-                    inbox[c[0]] = (c[2], c[3])
+                    sched.arrive(c[0], c[2], c[3])
 
         def await_answer(k: int) -> tuple | None:
             """Wait (up to lockstep_timeout_s) for the command answering sample k: (du/dt, planned du/dt), None if
@@ -149,15 +188,6 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                 c = take(item)
                 if c is not None and c[0] == k:
                     return c[2], c[3]
-
-        def planned(j: int) -> float:
-            """du/dt for the period of a missing command answering sample j: the plan of the one answering j - 1,
-            if it came; else 0 (hold)."""
-            if prev[0] == j - 1:
-                counters["planned_periods"] += 1
-                return prev[1]
-            counters["stale_periods"] += 1
-            return 0.0
 
         for k in range(N):
             if stop.is_set():
@@ -176,11 +206,12 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             if lockstep:
                 r = await_answer(k)
                 if r is None:
-                    counters["timeouts"] += 1
-                    r_latest = planned(k)  # no answer: the previous command's plan, else hold the source voltage
+                    counters["timeouts"] += 1  # no answer: the previous command's plan, else hold the source voltage
                 else:
-                    r_latest = du_for_k = r[0]
-                    prev = (k, r[1])
+                    sched.arrive(k, *r)
+                r_latest, fresh = sched.take(k)
+                if fresh:
+                    du_for_k = r_latest
             else:
                 if k == 0:
                     # arm: the converter is enabled by the controller's first answer, and the sampling clock
@@ -190,24 +221,13 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                     if r is None:
                         counters["timeouts"] += 1
                     else:
-                        inbox[0] = r
+                        sched.arrive(0, *r)
                     next_ns = now_ns() + period_ns
-                # fixed schedule, as a digital modulator: the command answering sample k - d acts over this
-                # period; one that has not arrived by now is too late (dropped when it comes), and the plan
-                # its predecessor carried for this period acts instead; without one the source holds its
-                # voltage (du/dt = 0) rather than keep ramping
-                j = k - d_rt
-                r = inbox.pop(j, None)
-                for old in [q for q in inbox if q < j]:
-                    late = inbox.pop(old)
-                    counters["late"] += 1
-                    if old == j - 1:  # too late for its own period, in time to plan this one
-                        prev = (old, late[1])
-                if r is None:
-                    r_latest = planned(j)
-                else:
-                    r_latest = du_for_k = r[0]
-                    prev = (j, r[1])
+                # fixed schedule, as a digital modulator (CommandSchedule): the command answering sample k - d
+                # acts over this period, else its predecessor's plan, else u is held
+                r_latest, fresh = sched.take(k)
+                if fresh:
+                    du_for_k = r_latest
             if cfg.delay_samples:
                 delay.append(r_latest)
                 r_apply = delay.popleft()
@@ -220,7 +240,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             if rec is not None:  # streamed through the recorder process: a killed plant keeps its trace
                 rec.offer(t_meas, t, (k, t, s.i, s.v, s.u, s.i_load))
                 if du_for_k == du_for_k:  # NaN: no command answered this sample
-                    rec.offer(t_cmd, t, (k, t, du_for_k, prev[1], False))
+                    rec.offer(t_cmd, t, (k, t, du_for_k, sched.prev[1], False))
                 rec.offer(t_plant, t, (t, pi, pv, pu, P_l))
             plant.advance(r_apply, T, n_sub)
     except BaseException:
@@ -236,6 +256,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                                               and trace["v"].max() < 2 * cfg.v_ref_V))
     metrics = compute_metrics(trace, cfg.v_ref_V, cfg.duration_s, diverged, 0)
     counters["missed"] = counters["samples"] - counters["commands"]
+    counters.update(sched.counts)
     res = {"metrics": metrics, "counters": counters, "pacing": cfg.pacing, "sample_rate_hz": cfg.sample_rate_hz}
     if lat_ns:
         lat = sorted(lat_ns)

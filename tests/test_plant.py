@@ -46,3 +46,29 @@ def test_sensor_noise_is_seeded_and_quantised():
     std = (sum((x - mean) ** 2 for x in vs) / len(vs)) ** 0.5
     assert std == pytest.approx((0.05**2 + 0.025**2 / 12) ** 0.5, rel=0.1)
     assert seq1 != [Sensor(cfg, 4).measure(k, k * 1e-4, 15.0, 80.0, 80.1, 15.0) for k in range(5000)]
+
+
+def test_the_hil_plant_schedule_applies_commands_then_plans_then_holds():
+    """The realtime plant's fixed schedule (clients.peers.CommandSchedule), d = 2: the command answering j acts
+    over period j + 2; missing, its predecessor's plan acts; with neither, u is held; a late command is dropped
+    but its plan still serves the next period."""
+    from clients.peers import CommandSchedule
+
+    s = CommandSchedule(2)
+    assert s.take(0) == (0.0, False) and s.take(1) == (0.0, False)  # nothing answered before sample 0
+    s.arrive(0, 100.0, 110.0)
+    s.arrive(1, 200.0, 210.0)
+    assert s.take(2) == (100.0, True) and s.take(3) == (200.0, True)
+    # the command answering 2 is missing at period 4: the plan sent with the answer to 1 acts
+    assert s.take(4) == (210.0, False)
+    # nor does 3 arrive in time for period 5: 2 never came, so there is no plan either: hold
+    assert s.take(5) == (0.0, False)
+    # 3 arrives late (after period 5), 4 never: 3 is dropped, but its plan is for period 6
+    s.arrive(3, 400.0, 410.0)
+    assert s.take(6) == (410.0, False)
+    s.arrive(5, 600.0, 610.0)
+    assert s.take(7) == (600.0, True)
+    assert s.counts == {"late": 1, "planned_periods": 2, "stale_periods": 3}
+    lock = CommandSchedule(0)  # lockstep: the answer to k acts at k (the delay line follows); a timeout -> plan
+    lock.arrive(0, 5.0, 6.0)
+    assert lock.take(0) == (5.0, True) and lock.take(1) == (6.0, False) and lock.take(2) == (0.0, False)
