@@ -61,12 +61,12 @@ def bench_bare(n_ticks: int, path: Path) -> dict:
     return {"messages": n, "wall_s": wall, "msgs_per_s": n / wall, "bytes_per_s": path.stat().st_size / wall}
 
 
-def bench_paced(seconds: float, rate_hz: float, path: Path | None) -> dict:
+def bench_paced(seconds: float, rate_hz: float, path: Path | None, writer_cpus: list[int] | None = None) -> dict:
     """path None: the same loop with a no-op offer (the machine's own overrun baseline)."""
     topics = {"meas": ("energyctl.Measurement", MEAS), "z_in": ("energyctl.TickInput", TICK_IN),
               "cmd": ("energyctl.Command", CMD), "est": ("energyctl.Estimate", EST),
               "z_out": ("energyctl.Interaction", Z), "events": ("energyctl.Event", None)}
-    rec = RingRecorder(path, topics, {"bench": {"json": "{}"}}) if path is not None else None
+    rec = RingRecorder(path, topics, {"bench": {"json": "{}"}}, writer_cpus=writer_cpus) if path is not None else None
     period = int(1e9 / rate_hz)
     n_ticks = int(seconds * rate_hz)
     stats = {"overruns": 0, "ticks": 0}
@@ -112,12 +112,12 @@ def bench_paced(seconds: float, rate_hz: float, path: Path | None) -> dict:
             "close_s": wall - loop_wall, "file_bytes": size, "recorder_error": rec.error}
 
 
-def bench_recorder(seconds: float = 10.0, rate_hz: float = 10_000.0) -> dict:
+def bench_recorder(seconds: float = 10.0, rate_hz: float = 10_000.0, writer_cpus: list[int] | None = None) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="energyctl-rec-"))
     try:
         bare = bench_bare(20_000, tmp / "bare.mcap")
         baseline = bench_paced(seconds, rate_hz, None)
-        paced = bench_paced(seconds, rate_hz, tmp / "paced.mcap")
+        paced = bench_paced(seconds, rate_hz, tmp / "paced.mcap", writer_cpus)
     finally:
         for p in tmp.glob("*.mcap"):
             os.unlink(p)

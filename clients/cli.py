@@ -299,8 +299,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         refused = set_nice(args.nice)  # the loop thread (and the writer it spawns, which drops below it)
         if refused:
             print(f"energyctl bench: {refused}", file=sys.stderr)
-        res = bench_recorder(seconds=args.seconds or 10.0)
+        cpus = [int(x) for x in args.writer_cpus.split(",")] if args.writer_cpus else None
+        res = bench_recorder(seconds=args.seconds or 10.0, writer_cpus=cpus)
         res["nice"] = args.nice
+        res["writer_cpus"] = cpus
     elif args.what == "tick":
         from .bench_tick import bench_tick
 
@@ -667,6 +669,8 @@ def build_parser() -> argparse.ArgumentParser:
     nice_opt(b)
     b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
     scen_opts(b)
+    b.add_argument("--writer-cpus", metavar="N,N,...",
+                   help="recorder: CPUs the recorder's writer process may run on (as log_writer_cpus; default any)")
     b.add_argument("--realtime", action="store_true",
                    help="recovery: wall-clock pacing with demo --realtime's settings (1 kHz, 3-sample schedule, "
                         f"{' '.join(DEMO_REALTIME_SETS)}) instead of lockstep")

@@ -234,7 +234,7 @@ class Daemon:
             self.core.cfg, c.model, self.period_s, self.core.d)}, "build": {"git": git_revision()}}
         self.log_path = path
         return RingRecorder(path, topics, meta, slots=c.log_queue, rotate_bytes=c.log_rotate_bytes,
-                            rotate_s=c.log_rotate_s)
+                            rotate_s=c.log_rotate_s, writer_cpus=c.log_writer_cpus)
 
     def close(self) -> None:
         self.state = "shutdown"

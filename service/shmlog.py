@@ -45,7 +45,8 @@ class RingRecorder:
 
     def __init__(self, path: str | Path, topics: dict[str, tuple[str, Codec | None]],
                  metadata: dict[str, dict[str, str]], slots: int = 1 << 17, chunk_size: int = 1 << 20,
-                 rotate_bytes: int | None = None, rotate_s: float | None = None):
+                 rotate_bytes: int | None = None, rotate_s: float | None = None,
+                 writer_cpus: list[int] | None = None):
         self.path = str(path)
         self.slots = slots
         self._shm = shared_memory.SharedMemory(create=True, size=_HDR.size + slots * SLOT)
@@ -70,7 +71,7 @@ class RingRecorder:
         self._proc = ctx.Process(target=_writer, name="energyctl-recorder", daemon=True,
                                  args=(self._shm.name, slots, self.path, spec, metadata, chunk_size,
                                        self._events, self._result, rotate_bytes, rotate_s, os.getpid(),
-                                       self._ready))
+                                       self._ready, writer_cpus))
         self._proc.start()
         self._buf = self._shm.buf
         self._w = 0
@@ -219,7 +220,7 @@ class TickIndex:
 
 
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
-            rotate_s=None, parent: int | None = None, ready=None) -> None:
+            rotate_s=None, parent: int | None = None, ready=None, cpus: list[int] | None = None) -> None:
     import importlib
     from queue import Empty
 
@@ -227,6 +228,11 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
     from service.recorder import McapFile
 
     background(RECORDER_NICE)  # below the process it records: that one has a loop to keep
+    if cpus:  # off the loop's CPU (RingRecorder's writer_cpus; the daemon's config checked they exist)
+        try:
+            os.sched_setaffinity(0, set(cpus))
+        except (OSError, ValueError):  # gone since (CPU hot-unplug): record anyway, anywhere
+            pass
 
     # do not hold the recorded process's stdout/stderr: whoever reads those pipes must see them close when
     # that process ends (errors go back through ``result``)

@@ -86,3 +86,25 @@ def test_run_says_once_that_it_could_not_raise_its_priority():
                           "print(os.getpriority(os.PRIO_PROCESS, 0), stop.is_set())"])
     assert res.stderr.count("energyctl run: cannot set nice -5") == 1
     assert res.stdout.split() == [str(nice_of(0)), "False"]
+
+
+def test_the_recorders_writer_runs_on_the_cpus_it_is_given(tmp_path):
+    """log_writer_cpus keeps the writer process off the loop's CPU; a CPU the machine lacks is a config error
+    naming the field."""
+    import pytest
+    from pydantic import ValidationError
+
+    from schemas.component import ComponentConfig
+    from service.shmlog import RingRecorder
+
+    have = sorted(os.sched_getaffinity(0))
+    if len(have) < 2:
+        pytest.skip("needs two CPUs")
+    rec = RingRecorder(tmp_path / "x.mcap", {"m": ("energyctl.Measurement", MEAS)}, {}, writer_cpus=[have[-1]])
+    try:
+        assert rec.wait_ready()
+        assert os.sched_getaffinity(rec.pid) == {have[-1]}
+    finally:
+        rec.close()
+    with pytest.raises(ValidationError, match="log_writer_cpus"):
+        ComponentConfig.model_validate({"id": "a", "log_writer_cpus": [max(have) + 100]})
