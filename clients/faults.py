@@ -210,8 +210,9 @@ def recovery(scn: Scenario, workdir: str | None = None, progress=print, realtime
     for label, local in labels[1:] if realtime else labels:
         progress(f"neighbour ({label}): kill -9 the load at t = 0.15 s, back at t = 0.30 s ...")
         comp = {"local_reference_W": local} if local is not None else {}
-        # realtime: the new load process takes ~0.5 s of wall (= plant) time to start; the plant runs on past it
-        with Rig(scn, base / f"load-{label}", duration_s=4.0 if realtime else 0.6, comp=comp, **pace) as rig:
+        # the new load process takes 1-2 s of wall time to start; the plant must still be running when it is back
+        # (in lockstep without a neighbour to wait for, plant time runs faster than wall time)
+        with Rig(scn, base / f"load-{label}", duration_s=4.0, comp=comp, **pace) as rig:
             rig.start("daemon")
             rig.start("load")
             rig.start("plant")
@@ -225,12 +226,15 @@ def recovery(scn: Scenario, workdir: str | None = None, progress=print, realtime
             rig.close()
             log = rig.daemon_log()
             events = read_messages(log, "/events") if log else []
-            back = [e["t"] for e in events if e["kind"] == "neighbour_alive"]
             gone = [e["t"] for e in events if e["kind"] == "neighbour_gone"]
+            t_gone = gone[0] if gone else None
+            # its return: an alive event after it went (the first one, at start, is not a return)
+            back = [e["t"] for e in events if e["kind"] == "neighbour_alive" and t_gone is not None
+                    and e["t"] >= t_gone]
             tr = read_messages(rig.plant_out, "/plant")
             t = np.array([m["t"] for m in tr])
             v = np.array([m["v"] for m in tr])
-            t_gone, t_back = (gone[0] if gone else None), (back[-1] if back else None)
+            t_back = back[0] if back else None
             rec = recovery_after(t, v, t_back, v_ref) if t_back is not None else None
             res[f"neighbour_{label}"] = {
                 "gone_at_s": t_gone, "back_at_s": t_back, "reference_while_away": away,
