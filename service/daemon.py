@@ -473,7 +473,10 @@ class Daemon:
             self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "degraded", why))
 
     def _hold(self, v: tuple, reason: str, detail: str = "") -> None:
-        """A rejected measurement: counted, recorded, answered with du/dt = 0; the core never sees it."""
+        """A rejected measurement: counted, recorded, answered with du/dt = 0; the core never sees it. Nor is it
+        told of the hold (replay could not repeat that: rejected samples are not in the log), so for this sample's
+        period it predicts the plan sent with the previous answer: one period of model error, against bit-exact
+        replay."""
         self._reject(reason, detail)
         self.cmd_pub.put(CMD.encode(v[0], v[1], 0.0, 0.0, True))
         self.last_cmd = (v[0], v[1], 0.0, 0.0, True)
