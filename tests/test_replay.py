@@ -149,6 +149,13 @@ def test_foxglove_layout_plots_only_channels_the_daemon_writes(tmp_path):
     channels = set(info(res["daemon_log"])["channels"])
     channels.add("energyctl/source/events")  # written only when something happens
     assert wanted <= channels, wanted - channels
+    # and every plotted field is a field of that channel's schema (the JSON Schema Foxglove reads)
+    schema_of = {"meas": "Measurement", "cmd": "Command", "est": "Estimate", "z_in": "TickInput", "z": "Interaction"}
+    plotted = re.findall(r'\\"energyctl/source/([a-z_]+)\\"\.([A-Za-z_0-9]+)', text)
+    assert ("cmd", "du_dt_next") in plotted
+    for topic, fld in plotted:
+        props = json.loads((ROOT / "schemas" / "json" / f"energyctl.{schema_of[topic]}.json").read_text())["properties"]
+        assert fld in props, (topic, fld)
 
 
 def test_rotated_daemon_log_replays_across_its_parts_and_records_neighbours_and_loop(tmp_path):
