@@ -72,3 +72,40 @@ def test_the_hil_plant_schedule_applies_commands_then_plans_then_holds():
     lock = CommandSchedule(0)  # lockstep: the answer to k acts at k (the delay line follows); a timeout -> plan
     lock.arrive(0, 5.0, 6.0)
     assert lock.take(0) == (5.0, True) and lock.take(1) == (6.0, False) and lock.take(2) == (0.0, False)
+
+
+def test_the_schedule_never_applies_anything_but_the_command_its_plan_or_a_hold():
+    """Any arrival pattern (commands on time, late, never): each period gets the command meant for it, else the
+    plan sent with its predecessor, else 0; every period is counted once; every late command is counted."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from clients.peers import CommandSchedule
+
+    @settings(max_examples=200, deadline=None)
+    @given(d=st.integers(0, 4), fate=st.lists(st.sampled_from(["on_time", "late", "lost"]), min_size=1, max_size=60))
+    def check(d, fate):
+        s = CommandSchedule(d)
+        cmd = {j: (1000.0 + j, 2000.0 + j) for j in range(len(fate))}
+        n = len(fate) + d + 1
+        fresh = 0
+        for k in range(n):
+            j = k - d
+            # a command on time is in by its period; a late one comes just after (before the next period)
+            if 0 <= j < len(fate) and fate[j] == "on_time":
+                s.arrive(j, *cmd[j])
+            r, is_cmd = s.take(k)
+            if 0 <= j < len(fate) and fate[j] == "on_time":
+                assert (r, is_cmd) == (cmd[j][0], True)
+                fresh += 1
+            else:
+                assert not is_cmd
+                prev_ok = 0 <= j - 1 < len(fate) and fate[j - 1] in ("on_time", "late")
+                assert r == (cmd[j - 1][1] if prev_ok else 0.0)
+            if 0 <= j < len(fate) and fate[j] == "late":
+                s.arrive(j, *cmd[j])
+        c = s.counts
+        assert fresh + c["planned_periods"] + c["stale_periods"] == n
+        assert c["late"] == sum(1 for f in fate[:n - d - 1] if f == "late")
+
+    check()
