@@ -24,7 +24,9 @@ def judge(res: dict) -> dict:
     dev = m.get("hold_max_dev_pct")
     row = {"v_dev_after_50ms_pct": dev, "diverged": m.get("diverged"), "overrun_pct": overrun_pct,
            "missed_or_late_pct": missed_pct, "latency_p50_us": res.get("latency_us", {}).get("p50"),
-           "latency_p99_us": res.get("latency_us", {}).get("p99")}
+           "latency_p99_us": res.get("latency_us", {}).get("p99"),
+           # not a criterion: how often the stand-in plant itself missed its sampling instant (its own stalls)
+           "plant_late_samples_pct": 100.0 * c.get("plant_late_samples", 0) / n}
     row["ok"] = (not m.get("diverged") and dev is not None and dev <= BAND_PCT and overrun_pct < LIMIT_PCT
                  and missed_pct < LIMIT_PCT)
     return row

@@ -133,7 +133,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
         # missed: samples whose command never arrived; late: arrived after its sampling instant (dropped);
         # planned_periods: periods run on the plan the previous command carried (its du_dt_next), its successor
         # missing; stale_periods: periods with neither (u held)
-        counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "rejected": 0}
+        # plant_late_samples: realtime samples this plant sent more than half a period after their instant
+        counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "rejected": 0, "plant_late_samples": 0}
         send_ns = array("q", bytes(8 * N))
         lat_ns = array("q")
         delay: deque[float] = deque([0.0] * cfg.delay_samples)
@@ -200,6 +201,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             i2 = load_current(P_l, plant.v, plant.v_min)
             s = sensor.measure(k, t, plant.i, plant.v, plant.u, i2)
             send_ns[k] = now_ns()
+            if not lockstep and k > 0 and send_ns[k] - (next_ns - period_ns) > period_ns // 2:
+                counters["plant_late_samples"] += 1  # this stand-in missed its own instant (the VM stalled it)
             pub.put(MEAS.encode(k, t, s.i, s.v, s.u, s.i_load))
             counters["samples"] += 1
             du_for_k = math.nan
