@@ -83,6 +83,17 @@ static void predict(double *pi, double *pv, double *pu, double P, double r, doub
     *pi = i; *pv = v; *pu = u;
 }
 
+/* core.predict_in_range: predict, then u held in [u_min, u_max] */
+static void predict_in_range(double *pi, double *pv, double *pu, double P, double r, double T, int n, double R,
+                             double L, double C, double u_min, double u_max)
+{
+    predict(pi, pv, pu, P, r, T, n, R, L, C);
+    if (*pu > u_max)
+        *pu = u_max;
+    else if (*pu < u_min)
+        *pu = u_min;
+}
+
 static void predict_with_sensitivity(double i, double v, double u, double P, double r, double T, int n, double R,
                                      double L, double C, double *pi, double *pv, double *pu, double *psi)
 {
@@ -403,11 +414,8 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
     double i_p = si_, v_p = sv, u_p = su;
     for (int j = 0; j < d; j++) {
         double r_j = late ? 0.0 : issued(k, seq - d + j);
-        predict(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C);
-        if (u_p > u_max)
-            u_p = u_max;
-        else if (u_p < u_min)
-            u_p = u_min;
+        predict_in_range(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C,
+                         u_min, u_max);
     }
     o[O_IPRED] = i_p; o[O_VPRED] = v_p; o[O_UPRED] = u_p;
 
@@ -421,11 +429,8 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
     double plan = 0.0;
     if (k->plan) {
         double i1 = i_p, v1 = v_p, u1 = u_p;
-        predict(&i1, &v1, &u1, P_meas + Pdot * ((double)d + 0.5) * T, r, T, k->n_pred, R, L, C);
-        if (u1 > u_max)
-            u1 = u_max;
-        else if (u1 < u_min)
-            u1 = u_min;
+        predict_in_range(&i1, &v1, &u1, P_meas + Pdot * ((double)d + 0.5) * T, r, T, k->n_pred, R, L, C, u_min,
+                         u_max);
         plan = law(k, i1, v1, u1, P_meas, P_in, P_in_dot, d + 1, r, &raw1, &u_z1);
     }
     o[O_LIMITED] = (r != raw) ? 1.0 : 0.0;

@@ -26,8 +26,9 @@ Laws (paper Sec. "Interactive component-level control", RLC instance; derivation
 
 Loop delay: a command computed from the sample at t_k acts from t_{k+d}, for one period (the plant's
 fixed schedule). So over the periods k .. k+d-1 the commands answering samples k-d .. k-1 act. The core
-keeps the last d commands it issued with the sequence numbers they answer and integrates the nominal model
-over them from the sample (prediction), then computes the command for the period that starts at t_{k+d}.
+keeps what it answered the last d + 1 samples with (command and plan, by the sequence number answered) and
+integrates the nominal model over the rates that act from the sample (prediction), then computes the command
+for the period that starts at t_{k+d}.
 Each command also carries a plan, du_dt_next: the same law applied to the state predicted at t_{k+d+1}
 (after this command's period), for the period after. A command that is missing or late at the plant is
 replaced by its predecessor's plan (packetized predictive control), so a lost command costs only what the
@@ -75,6 +76,13 @@ def predict(i: float, v: float, u: float, P: float, r: float, T: float, n: int,
         v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
         u = u1
     return i, v, u
+
+
+def predict_in_range(i: float, v: float, u: float, P: float, r: float, T: float, n: int, R: float, L: float,
+                     C: float, u_min: float, u_max: float) -> tuple[float, float, float]:
+    """predict, then u held in [u_min, u_max] (V): the source stops at its limits."""
+    i, v, u = predict(i, v, u, P, r, T, n, R, L, C)
+    return i, v, (u_max if u > u_max else u_min if u < u_min else u)
 
 
 def predict_with_sensitivity(i: float, v: float, u: float, P: float, r: float, T: float, n: int,
@@ -317,11 +325,8 @@ class ControlCore(CoreBase):
         n = self.n_pred
         for k in range(d):
             r_k = 0.0 if late else self.issued(seq - d + k)
-            i_p, v_p, u_p = predict(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, n, R, L, C)
-            if u_p > u_max:
-                u_p = u_max
-            elif u_p < u_min:
-                u_p = u_min
+            i_p, v_p, u_p = predict_in_range(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, n, R, L, C,
+                                             u_min, u_max)
         out.i_pred, out.v_pred, out.u_pred = i_p, v_p, u_p
 
         # --- energy-space output and reference at the sample (reported) ---
@@ -333,11 +338,8 @@ class ControlCore(CoreBase):
         r, raw, u_z = self._law(i_p, v_p, u_p, P_meas, inc, d, self.r_prev)
         plan = 0.0
         if self._plan:
-            i1, v1, u1 = predict(i_p, v_p, u_p, P_meas + Pdot * (d + 0.5) * T, r, T, n, R, L, C)
-            if u1 > u_max:
-                u1 = u_max
-            elif u1 < u_min:
-                u1 = u_min
+            i1, v1, u1 = predict_in_range(i_p, v_p, u_p, P_meas + Pdot * (d + 0.5) * T, r, T, n, R, L, C, u_min,
+                                          u_max)
             plan = self._law(i1, v1, u1, P_meas, inc, d + 1, r)[0]
         out.limited = r != raw
         out.late = late
