@@ -23,8 +23,7 @@ EMBEDDED = Path(__file__).parent / "embedded"
 CONTROLLERS = ("fblc", "smc", "lqr", "bm", "fixed")
 DEMO_REALTIME_HZ = 1000.0  # realtime does not regulate reliably on the 2-vCPU VM yet (README, issue 3 note)
 # realtime demo defaults (README "Measured (issue 3)"): a 3-sample schedule (the round trip's p99 exceeds one 1 ms
-# period, and 3 regulated in every search run of the quieter hour), the paper gain lowered to 1500/s, and a 50 us
-# plant step (20 RK4 steps per sample, not 100)
+# period, often two), the paper gain lowered to 1500/s, and a 50 us plant step (20 RK4 steps per sample, not 100)
 DEMO_REALTIME_DELAY = 3
 DEMO_REALTIME_SETS = ["controller.K_per_s=1500.0", "timing.plant_step_s=5e-5"]
 
