@@ -138,6 +138,49 @@ def _compiled_steps():
 plant_steps = _compiled_steps()
 
 
+class CommandSchedule:
+    """Which du/dt acts over each period, from the commands that arrived (pure: no clock, no I/O).
+
+    The command answering sample j acts over period j + d (d = 0 in lockstep and in sim, where the delay line comes
+    first and this then takes the command for its period).
+    A command missing at its period (late or lost) is replaced by the plan its predecessor carried (du_dt_next,
+    which is for exactly that period); with neither, the source holds its voltage (du/dt = 0). A command arriving
+    after its period is dropped and counted late, but its plan still serves the period after. ``counts``:
+    late, planned_periods, stale_periods (periods with neither)."""
+
+    def __init__(self, d: int):
+        self.d = d
+        self.inbox: dict[int, tuple[float, float]] = {}  # seq answered -> (du/dt, planned du/dt)
+        self.prev = (-1, 0.0)  # (seq, plan) of the newest command taken, in time or late
+        self.counts = {"late": 0, "planned_periods": 0, "stale_periods": 0}
+
+    def arrive(self, seq: int, du_dt: float, du_dt_next: float) -> None:
+        self.inbox[seq] = (du_dt, du_dt_next)
+
+    def take(self, k: int) -> tuple[float, bool]:
+        """(du/dt over period k, whether it is the command meant for k rather than a plan or a hold)."""
+        j = k - self.d
+        got = self.inbox.pop(j, None)
+        for old in [q for q in self.inbox if q < j]:
+            late = self.inbox.pop(old)
+            self.counts["late"] += 1
+            if old == j - 1:  # too late for its own period, in time to plan this one
+                self.prev = (old, late[1])
+        if got is not None:
+            self.prev = (j, got[1])
+            return got[0], True
+        return self.fallback(j), False
+
+    def fallback(self, j: int) -> float:
+        """du/dt for the period of a missing command answering sample j: the plan of the one answering j - 1 if it
+        came, else 0 (hold)."""
+        if self.prev[0] == j - 1:
+            self.counts["planned_periods"] += 1
+            return self.prev[1]
+        self.counts["stale_periods"] += 1
+        return 0.0
+
+
 class Sensor:
     """Seeded white noise and quantisation on i, v, u, i_load; drawn in blocks (same stream everywhere)."""
 

@@ -18,7 +18,7 @@ from schemas.scenario import Scenario
 from .core import effective_gain, make_core
 from .feasibility import FeasibilityMonitor, Violation, incoming_range, load_box, tau_prime
 from .forecast import OutgoingForecast, forecast_outgoing
-from .plant import RLCPlant, Sensor, load_current
+from .plant import CommandSchedule, RLCPlant, Sensor, load_current
 from .profiles import Profile
 from .types import Incoming
 
@@ -61,7 +61,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     sensor = Sensor(scn.sensor, scn.seed)
     core = make_core(scn.controller, scn.model, T, tm.delay_samples, impl)
     delay: deque[tuple[float, float]] = deque([(0.0, 0.0)] * tm.delay_samples)
-    prev_plan = 0.0  # du/dt the last command that reached the plant planned for the next period
+    sched = CommandSchedule(0)  # after the delay line, as the lockstep HIL plant: a lost command never arrives
     loss = tm.command_loss
     loss_rng = np.random.default_rng([scn.seed, 0xC0DE])  # its own stream: sensor noise stays the same
 
@@ -97,13 +97,12 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
         out = core.step(s, inc)
         if tm.delay_samples:
             delay.append((out.du_dt, out.du_dt_next))
-            r_apply, r_plan = delay.popleft()
+            cmd = delay.popleft()
         else:
-            r_apply, r_plan = out.du_dt, out.du_dt_next
-        if loss and loss_rng.random() < loss:
-            r_apply = prev_plan  # this command is lost: its predecessor's plan acts (0 if that was lost too)
-            r_plan = 0.0
-        prev_plan = r_plan
+            cmd = (out.du_dt, out.du_dt_next)
+        if not (loss and loss_rng.random() < loss):  # lost: its predecessor's plan acts (0 if that was lost too)
+            sched.arrive(k, *cmd)
+        r_apply = sched.take(k)[0]
         est = out.est
         if t >= t_warm:
             feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
