@@ -142,7 +142,6 @@ class Daemon:
         self.restarts = 0
         self.late_ticks = 0  # ticks at which the core saw its commands not acting in time (late_detect_V)
         self._reject_events: dict[str, tuple[int, int]] = {}  # reason -> (loop ns of its last event, rejects since)
-        self._now_ns = 0  # the loop's clock at the tick being handled
         self.degraded_reason = ""
         self.reference = "none"
         self._pending_state: str | None = None
@@ -382,15 +381,15 @@ class Daemon:
             if max_ticks is not None and stats.ticks >= max_ticks:
                 break
 
-    def _reject(self, reason: str, detail: str = "") -> None:
+    def _reject(self, reason: str, now: int, detail: str = "") -> None:
         """Count by reason class (bounded keys); keep the detail of the last one; record it as a diagnostics
-        event, at most one per reason per REJECT_EVENT_EVERY_NS of the loop's clock (a diverged plant is rejected
-        at every sample: a flood of events outgrew the recorder's event queue), saying how many it stands for."""
+        event, at most one per reason per REJECT_EVENT_EVERY_NS of the loop's clock (``now``, ns; a diverged plant
+        is rejected at every sample: a flood of events outgrew the recorder's event queue), saying how many it
+        stands for."""
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
         text = f"{reason} ({detail})" if detail else reason
         self.last_reject = text
         if self.recorder is not None:
-            now = self._now_ns
             last_ns, held = self._reject_events.get(reason, (None, 0))
             if last_ns is not None and 0 <= now - last_ns < REJECT_EVENT_EVERY_NS:
                 self._reject_events[reason] = (last_ns, held + 1)
@@ -414,7 +413,7 @@ class Daemon:
             try:
                 v = Z.decode(z.payload.to_bytes())
             except DecodeError as e:
-                self._reject(f"{nb.id}.{e.field}: invalid", e.reason)
+                self._reject(f"{nb.id}.{e.field}: invalid", now, e.reason)
                 continue
             nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
             w = v[7]
@@ -472,12 +471,12 @@ class Daemon:
             t = ls[1] if ls else 0.0
             self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "degraded", why))
 
-    def _hold(self, v: tuple, reason: str, detail: str = "") -> None:
+    def _hold(self, v: tuple, now: int, reason: str, detail: str = "") -> None:
         """A rejected measurement: counted, recorded, answered with du/dt = 0; the core never sees it. Nor is it
         told of the hold (replay could not repeat that: rejected samples are not in the log), so for this sample's
         period it predicts the plan sent with the previous answer: one period of model error, against bit-exact
         replay."""
-        self._reject(reason, detail)
+        self._reject(reason, now, detail)
         self.cmd_pub.put(CMD.encode(v[0], v[1], 0.0, 0.0, True))
         self.last_cmd = (v[0], v[1], 0.0, 0.0, True)
         self._remember(v[0], v[4], 0.0)
@@ -487,21 +486,20 @@ class Daemon:
         self._hist_seq[j], self._hist_u[j], self._hist_r[j] = seq, u, du
 
     def _tick(self, payload: bytes, now: int) -> None:
-        self._now_ns = now
         self._poll_neighbours(now)
         try:
             v = MEAS.decode(payload)
         except DecodeError as e:
-            self._reject(f"meas.{e.field}: invalid", e.reason)
+            self._reject(f"meas.{e.field}: invalid", now, e.reason)
             return
         seq, t = v[0], v[1]
         c = self.cfg
         if not c.meas_v_min_V <= v[3] <= c.meas_v_max_V:
-            return self._hold(v, "meas.v: out of range",
+            return self._hold(v, now, "meas.v: out of range",
                               f"{v[3]:g} V not in [{c.meas_v_min_V:g}, {c.meas_v_max_V:g}]")
         if abs(v[2]) > c.meas_i_max_A or abs(v[5]) > c.meas_i_max_A:
             field = "i" if abs(v[2]) > c.meas_i_max_A else "i_load"
-            return self._hold(v, f"meas.{field}: out of range", f"beyond ±{c.meas_i_max_A:g} A")
+            return self._hold(v, now, f"meas.{field}: out of range", f"beyond ±{c.meas_i_max_A:g} A")
         if seq == 0 and self._last_seq > 0:  # the plant restarted: its history is not ours any more
             self.core.reset()
             self._last_seq = -1
@@ -509,10 +507,10 @@ class Daemon:
             if self.recorder is not None:
                 self.recorder.offer(self.t_ev, t, (t, 0, "plant_restart", "{}"))
         if seq <= self._last_seq:
-            self._reject("meas.seq: duplicate or not increasing")
+            self._reject("meas.seq: duplicate or not increasing", now)
             return
         if self.last_sample is not None and self._last_seq >= 0 and t <= self.last_sample[1]:
-            return self._hold(v, "meas.t: not after the previous sample")
+            return self._hold(v, now, "meas.t: not after the previous sample")
         if self.state == "degraded":
             self.state = "active"
         if self._last_seq >= 0 and seq > self._last_seq + 1:
