@@ -163,7 +163,7 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
         # bursts of late commands (10+ ms on this VM) made the prediction use rates that never acted, and the
         # commands built on them grew until they diverged: detect them from the measured u (its change over a
         # period has noise sqrt(2) sigma) and predict the in-flight ones as not acting (README)
-        if comp["controller"].get("late_detect_V", 0.0) == 0.0:
+        if "late_detect_V" not in scn.controller.model_fields_set:  # the scenario's own value wins, 0 (off) too
             comp["controller"]["late_detect_V"] = max(REALTIME_LATE_MIN_V,
                                                       REALTIME_LATE_SIGMAS * math.sqrt(2.0) * scn.sensor.noise_v_V)
     load = {"id": "load", "zenoh": zc, "load": scn.load.model_dump(), "plant_id": "source",

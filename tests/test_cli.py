@@ -116,3 +116,25 @@ def test_realtime_bench_judges_each_criterion():
                 {"counters": {"samples": 10_000, "missed": 6, "late": 4}},
                 {"daemon": {}}):  # no loop statistics: not proven
         assert not judge({**good, **bad})["ok"], bad
+
+
+def test_realtime_stacks_turn_late_detection_on_unless_the_scenario_says_otherwise():
+    """configs_from_scenario: realtime sets late_detect_V at 4 sqrt(2) sigma of the u noise; lockstep leaves it off;
+    a value the scenario sets, 0 (off) included, is kept."""
+    import math
+
+    from clients.live import REALTIME_LATE_SIGMAS, configs_from_scenario
+    from schemas.scenario import load_scenario
+
+    path = SCENARIOS / "paper-varying-load.toml"
+
+    def tol(overrides, lockstep=False):
+        comp, _p, _l = configs_from_scenario(load_scenario(path, overrides), "tcp/127.0.0.1:1", lockstep=lockstep,
+                                             rate_hz=1000.0)
+        return comp["controller"]["late_detect_V"]
+
+    sigma = load_scenario(path).sensor.noise_v_V
+    assert sigma > 0 and tol([]) == REALTIME_LATE_SIGMAS * math.sqrt(2.0) * sigma
+    assert tol([], lockstep=True) == 0.0
+    assert tol(["controller.late_detect_V=0"]) == 0.0
+    assert tol(["controller.late_detect_V=0.5"]) == 0.5
