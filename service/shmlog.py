@@ -315,6 +315,16 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             return 1
         return 0
 
+    def drain(timeout_s: float | None = None) -> int:
+        """Every item the side queue holds now (timeout_s: and any that arrives within it of the last)."""
+        n = 0
+        try:
+            while True:
+                n += side(*(events.get_nowait() if timeout_s is None else events.get(timeout=timeout_s)))
+        except Empty:
+            pass
+        return n
+
     # the recorded process, named by itself: reading getppid() here would be too late if it died while this
     # process was still importing (then the orphan never noticed, and idled forever)
     parent = parent or os.getppid()
@@ -345,26 +355,14 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
                 if r & 0xFF == 0:
                     _IDX.pack_into(buf, 8, r)
                     if r & 0xFFF == 0:  # a ring that never empties must not starve the event queue
-                        try:
-                            while True:
-                                written += side(*events.get_nowait())
-                        except Empty:
-                            pass
+                        written += drain()
                 continue
             _IDX.pack_into(buf, 8, r)
-            try:
-                while True:
-                    written += side(*events.get_nowait())
-            except Empty:
-                pass
+            written += drain()
             if buf[16] or os.getppid() != parent:  # stopped, or the recorded process died: finish
                 if not buf[_HDR.size + (r % slots) * SLOT]:
                     if buf[16]:  # items put just before the stop may still be in the queue's pipe
-                        try:
-                            while True:
-                                written += side(*events.get(timeout=0.1))
-                        except Empty:
-                            pass
+                        written += drain(0.1)
                     break
                 continue
             time.sleep(IDLE_SLEEP_S)
