@@ -4,7 +4,7 @@ Part 1 (bare): pre-encoded JSON messages straight into an mcap Writer (zstd chun
 goes: messages/s and bytes/s of the library alone.
 Part 2 (paced): a loop thread scheduled like the daemon's clock loop (absolute time, sleep then spin)
 offers to the daemon's recorder (shared-memory ring, writer process) per tick what the daemon offers
-(meas, z_in, cmd every tick; est and z_out every 10th) for the
+(meas, z_in, cmd every tick, grouped in one slot; est and z_out every 10th) for the
 given duration; reports the loop's overruns, the recorder's drops, and the recorder's sustained
 messages/s and bytes/s. The ratio is part 2's sustained rate over part 1's capacity.
 """
@@ -66,11 +66,13 @@ def bench_paced(seconds: float, rate_hz: float, path: Path | None, writer_cpus: 
     topics = {"meas": ("energyctl.Measurement", MEAS), "z_in": ("energyctl.TickInput", TICK_IN),
               "cmd": ("energyctl.Command", CMD), "est": ("energyctl.Estimate", EST),
               "z_out": ("energyctl.Interaction", Z), "events": ("energyctl.Event", None)}
-    rec = RingRecorder(path, topics, {"bench": {"json": "{}"}}, writer_cpus=writer_cpus) if path is not None else None
+    rec = RingRecorder(path, topics, {"bench": {"json": "{}"}}, writer_cpus=writer_cpus,
+                       groups=[("meas", "z_in", "cmd")]) if path is not None else None
     period = int(1e9 / rate_hz)
     n_ticks = int(seconds * rate_hz)
     stats = {"overruns": 0, "ticks": 0}
     offer = rec.offer if rec is not None else (lambda topic, t, v: None)
+    offer_group = rec.offer_group if rec is not None else (lambda g, t, *v: None)
 
     def loop() -> None:
         now = time.monotonic_ns
@@ -83,7 +85,9 @@ def bench_paced(seconds: float, rate_hz: float, path: Path | None, writer_cpus: 
             while now() < nxt:
                 pass
             t = k / rate_hz
-            for topic, _f, v in _streams(k, t):
+            (_m, _fm, m), (_z, _fz, z), (_c, _fc, c), *rest = _streams(k, t)
+            offer_group(0, t, *m, *z, *c)  # as the daemon's tick: meas, z_in and cmd in one slot
+            for topic, _f, v in rest:
                 offer(topic, t, v)
             stats["ticks"] += 1
             nxt += period

@@ -33,9 +33,10 @@ def _trace(scenario_path: str, n: int):
 
 
 def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: dict | None = None,
-                 n: int | None = None) -> tuple[list[int], dict]:
-    """Tick an opened daemon by hand through the trace's measurements (the first n); (exec times ns, final
-    status). hooks: {tick: fn(daemon)} called between ticks, where the loop applies config changes."""
+                 n: int | None = None, skip: set[int] = frozenset()) -> tuple[list[int], dict]:
+    """Tick an opened daemon by hand through the trace's measurements (the first n, but those in skip: lost on the
+    way); (exec times ns, 0 where skipped; final status). hooks: {tick: fn(daemon)} called between ticks, where the
+    loop applies config changes."""
     from schemas.component import ComponentConfig, config_from_dict
     from service.bus import free_tcp_port
     from service.core import make_core
@@ -63,6 +64,8 @@ def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: di
         for k in range(m):
             if hooks and k in hooks:
                 hooks[k](d)
+            if k in skip:
+                continue
             payload = MEAS.encode(k, tr["t"][k], tr["i_meas"][k], tr["v_meas"][k], tr["u_meas"][k],
                                   tr["i_load_meas"][k])
             # the neighbour's message for this very sample (stamped with its time, as in lockstep)

@@ -248,6 +248,16 @@ class CoreBase:
         """Sample seq was answered with du/dt = 0 and no plan, without a step (inactive, no reference)."""
         raise NotImplementedError
 
+    def step_values(self, seq: int, t: float, i: float, v: float, u: float, i_load: float, P_r_in: float,
+                    P_r_in_dot: float) -> tuple:
+        """step() for the daemon's tick: (du_dt V/s, du_dt_next V/s, limited, late, P_r_out_port W or None before
+        the first estimate, Qdot_r_out_port W/s), with no Sample, Incoming or attribute reads on the way (the
+        compiled core returns them from C in one call)."""
+        o = self.step(Sample(seq, t, i, v, u, i_load), Incoming(P_r_in, P_r_in_dot))
+        e = o.est
+        return (o.du_dt, o.du_dt_next, o.limited, o.late, None if e is None else e.P_r_out_port,
+                0.0 if e is None else e.Qdot_r_out_port)
+
     def y_ref_of(self, P_in: float, v: float) -> float:
         """This controller's reference map y_ref(P^{r,in}, v) (W)."""
         return y_reference(P_in, v, self.cfg.v_ref_V, self._keC)

@@ -25,7 +25,7 @@ import numpy as np
 import zenoh
 from pydantic import ValidationError
 
-from schemas.codec import CMD, MEAS, DecodeError, Z
+from schemas.codec import CMD, MEAS, VERSION, DecodeError, Z
 from schemas.component import ComponentConfig
 from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, format_validation_error
 
@@ -35,8 +35,8 @@ from .core import core_metadata, effective_gain, make_core
 from .delay import loop_delay_report
 from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from .forecast import ForecastWorker
-from .types import Incoming, Sample
 
+_CMD_PACK, _CMD_MAGIC, _VERSION = CMD.struct.pack, CMD.magic, VERSION  # CMD.encode without its call, on the tick
 STATES = ("configured", "active", "inactive", "shutdown")
 HIST = 2048  # ticks of command history for the measured loop delay (a power of two)
 LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
@@ -138,6 +138,7 @@ class Daemon:
         self.config_version = 0
         self._pending: tuple[ControllerConfig, threading.Event, str] | None = None
         self.recorder = None
+        self._fast = None  # the compiled stepped tick (open: _tick_writer)
         self._idle = 0
         self.restarts = 0
         self.late_ticks = 0  # ticks at which the core saw its commands not acting in time (late_detect_V)
@@ -195,6 +196,7 @@ class Daemon:
                 print(f"energyctl[{c.id}]: logging degraded: {self.log_error}", file=sys.stderr, flush=True)
             else:
                 self.recorder.wait_ready()  # a failure shows in status as logging: degraded
+        self._fast = self._tick_writer()
         if c.forecast.enabled and self.neighbours:  # a worker process: started (and imported) before the loop runs
             self.forecaster = ForecastWorker(c.model, self.period_s, self.core.d, c.forecast, c.forecast_window_s,
                                              on_result=self._forecast_done)
@@ -233,10 +235,26 @@ class Daemon:
             self.core.cfg, c.model, self.period_s, self.core.d)}, "build": {"git": git_revision()}}
         self.log_path = path
         return RingRecorder(path, topics, meta, slots=c.log_queue, rotate_bytes=c.log_rotate_bytes,
-                            rotate_s=c.log_rotate_s, writer_cpus=c.log_writer_cpus)
+                            rotate_s=c.log_rotate_s, writer_cpus=c.log_writer_cpus,
+                            groups=[(self.t_meas, self.t_zin, self.t_cmd)])  # offer_group(0, ...) in _tick
+
+    def _tick_writer(self):
+        """With the compiled core: a service._kernel.TickWriter doing a stepped tick's step, command payload,
+        history entry and recorder slot in one call (the Python lines in _tick are its reference); else None."""
+        k = getattr(self.core, "_k", None)
+        if k is None:
+            return None
+        from ._kernel import TickWriter
+
+        ring = self.recorder.ring_args(0) if self.recorder is not None else {}
+        return TickWriter(k, self._hist_seq, self._hist_u, self._hist_r, CMD.struct.format, CMD.magic, VERSION,
+                          **ring)
 
     def close(self) -> None:
         self.state = "shutdown"
+        if getattr(self, "_fast", None) is not None:
+            self._fast.close()  # its view of the recorder's ring goes before the ring does
+            self._fast = None
         if self.forecaster is not None:
             self.forecaster.close()
         if getattr(self, "recorder", None) is not None:
@@ -538,38 +556,45 @@ class Daemon:
             P_in = -v[3] * v[5] if local == "measured" else -local
             P_in_dot, fresh = 0.0, True
             self.reference = "local"
-        s = Sample(seq, v[1], v[2], v[3], v[4], v[5])
         stepped = self.state == "active" and fresh
-        if stepped:
-            out = self.core.step(s, Incoming(P_in, P_in_dot))
-            du, du_next, limited = out.du_dt, out.du_dt_next, out.limited
-            if out.late:
-                self.late_ticks += 1
-            est = out.est
-            self._feasibility(v[1], est)
-        else:
-            du, du_next, limited = 0.0, 0.0, False  # inactive, or no fresh reference: hold the source voltage
-            self.core.hold(seq)
-        self.cmd_pub.put(CMD.encode(seq, v[1], du, du_next, limited))
-        self.last_cmd = (seq, v[1], du, du_next, limited)
-        self._remember(seq, v[4], du)
         rec = self.recorder
-        if rec is not None:  # tuples only: encoding and I/O happen on the recorder thread
-            t = v[1]
-            rec.offer(self.t_meas, t, v)
-            rec.offer(self.t_zin, t, (seq, t, P_in, P_in_dot, stepped))
-            rec.offer(self.t_cmd, t, self.last_cmd)
+        fast = self._fast
+        if stepped and fast is not None:  # the compiled core: the lines below, in C, in one call (_tick_writer)
+            cmd, du, du_next, limited, late, P_out, Qdot_out, dropped = fast.step(seq, t, v[2], v[3], v[4], v[5],
+                                                                                  P_in, P_in_dot)
+            self.cmd_pub.put(cmd)
+            if dropped:
+                rec.dropped_group(0)
+        else:
+            if stepped:
+                du, du_next, limited, late, P_out, Qdot_out = self.core.step_values(seq, t, v[2], v[3], v[4], v[5],
+                                                                                    P_in, P_in_dot)
+            else:
+                du, du_next, limited = 0.0, 0.0, False  # inactive, or no fresh reference: hold the source voltage
+                late, P_out = False, None
+                self.core.hold(seq)
+            self.cmd_pub.put(_CMD_PACK(_CMD_MAGIC, _VERSION, seq, t, du, du_next, limited))
+            self._remember(seq, v[4], du)
+            if rec is not None:  # values only: encoding and I/O happen in the recorder's process
+                # meas, z_in and cmd in one ring slot (RingRecorder groups)
+                rec.offer_group(0, t, *v, seq, t, P_in, P_in_dot, stepped, seq, t, du, du_next, limited)
+        self.last_cmd = (seq, t, du, du_next, limited)
+        if late:
+            self.late_ticks += 1
+        if P_out is not None:
+            self._feasibility(t, P_out, Qdot_out)
+        if rec is not None:
             st = self.stats
             if st.ticks % 1000 == 0:
                 rec.offer(self.t_loop, t, (t, st.ticks, st.overruns, st.no_new_sample, st.missing_samples,
                                            st.window_exec_max, st.window_period_max))
                 st.window_exec_max = st.window_period_max = 0
-            if stepped and self.stats.ticks % self.cfg.log_est_every == 0:
+            if stepped and self.stats.ticks % self.cfg.log_est_every == 0 and (est := self.core.out.est) is not None:
                 o = self.core.out
                 rec.offer(self.t_est, t, (t, est.E, est.p, est.E_t, o.y_z, est.y_z_balance, o.y_ref, est.eta, o.u_z,
                                           est.P_r_out_port, est.Qdot_r_out_port, o.z_out0, o.z_out1))
         if self.stats.ticks % self._z_every == 0 and self.core.out.est is not None:
-            self._publish_z(v[1])
+            self._publish_z(t)
 
     def _box(self, window: int) -> tuple | None:
         """The neighbours' forecast boxes for this window, summed (W, W/s), once every neighbour announced it."""
@@ -581,9 +606,9 @@ class Daemon:
             lo, hi, dlo, dhi = lo + b[0], hi + b[1], dlo + b[2], dhi + b[3]
         return (lo, hi, dlo, dhi) if self.neighbours else None
 
-    def _feasibility(self, t: float, est) -> None:
-        """Run-time check of the outgoing rates against this window's incoming range (paper Eqn
-        FeasibilityConds), from the neighbours' boxes announced for it."""
+    def _feasibility(self, t: float, P_out: float, Qdot_out: float) -> None:
+        """Run-time check of the outgoing rates P^{r,out} (W) and Qdot^{r,out} (W/s) at the port against this
+        window's incoming range (paper Eqn FeasibilityConds), from the neighbours' boxes announced for it."""
         k = int(t // self.cfg.forecast_window_s)
         if k != self._window:
             self._window = k
@@ -593,7 +618,7 @@ class Daemon:
             if self._zin_window != k and (box := self._box(k)) is not None:
                 self.feas.set_range(k, incoming_range(*box, self._tau_p))
                 self._zin_window = k
-        self.feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
+        self.feas.update(t, P_out, Qdot_out)
 
     def _publish_z(self, t: float) -> None:
         est = self.core.out.est

@@ -117,6 +117,7 @@ class CompiledCore(CoreBase):
         self.out = KernelOutput(self._b)
         self.estimator = _KernelEstimator(self._b)
         self._step = self._k.step
+        self.step_values = self._k.step_values
 
     def _cache(self) -> None:
         super()._cache()

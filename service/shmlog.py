@@ -35,6 +35,7 @@ _PAYLOAD = 1 + _SLOT_HDR.size
 
 
 _IDX = struct.Struct("<Q")
+GROUP_BASE = 128  # slot topic ids from here on name a group of topics (RingRecorder groups)
 # the writer's nap when the ring is empty: long enough that its wake-ups (200/s) do not disturb the loop's core,
 # short against the ring (131 072 slots = 4 s of the daemon's 32 k messages/s)
 IDLE_SLEEP_S = 0.005
@@ -46,7 +47,10 @@ class RingRecorder:
     def __init__(self, path: str | Path, topics: dict[str, tuple[str, Codec | None]],
                  metadata: dict[str, dict[str, str]], slots: int = 1 << 17, chunk_size: int = 1 << 20,
                  rotate_bytes: int | None = None, rotate_s: float | None = None,
-                 writer_cpus: list[int] | None = None):
+                 writer_cpus: list[int] | None = None, groups: list[tuple[str, ...]] = ()):
+        """groups: topics offered together every time (the daemon's meas, z_in and cmd each tick): offer_group
+        packs one message of each into a single slot, with one call; the writer records them as separate
+        messages of their channels, in the group's order. A full ring drops the slot: one drop per topic."""
         self.path = str(path)
         self.slots = slots
         self._shm = shared_memory.SharedMemory(create=True, size=_HDR.size + slots * SLOT)
@@ -63,6 +67,18 @@ class RingRecorder:
                 # "<Bd" then the codec's own "<BB..." without its byte-order mark: the same bytes as packing the
                 # header and the payload one after the other, in one call
                 self._codecs[topic] = (k, struct.Struct(_SLOT_HDR.format + codec.struct.format[1:]), codec.magic)
+        assert len(topics) < GROUP_BASE, "topic ids are one byte below GROUP_BASE"
+        # per group: (its id in the slot: GROUP_BASE + index, its struct: slot header and every member's fields
+        # with no magic and version bytes, its topics)
+        ids = {topic: k for k, topic in enumerate(topics)}
+        self.groups: list[tuple[int, struct.Struct, tuple[str, ...]]] = []
+        group_spec = []
+        for g, members in enumerate(groups):
+            fmt = _SLOT_HDR.format + "".join(topics[m][1].struct.format[3:] for m in members)
+            st = struct.Struct(fmt)
+            assert 1 + st.size <= SLOT, members
+            self.groups.append((GROUP_BASE + g, st, tuple(members)))
+            group_spec.append(tuple(ids[m] for m in members))
         self._events_topic = next((t for t, (s, c) in topics.items() if c is None), None)
         ctx = mp.get_context("spawn")
         self._events = ctx.Queue()
@@ -71,10 +87,10 @@ class RingRecorder:
         self._proc = ctx.Process(target=_writer, name="energyctl-recorder", daemon=True,
                                  args=(self._shm.name, slots, self.path, spec, metadata, chunk_size,
                                        self._events, self._result, rotate_bytes, rotate_s, os.getpid(),
-                                       self._ready, writer_cpus))
+                                       self._ready, writer_cpus, group_spec))
         self._proc.start()
         self._buf = self._shm.buf
-        self._w = 0
+        self._wi = array("q", [0])  # the write index: shared with a TickWriter's grouped slots (ring_args)
         self.drops: dict[str, int] = {}
         self._written_final: int | None = None
         self.paths = [self.path]  # all parts, known at close
@@ -133,7 +149,8 @@ class RingRecorder:
             if topic == self._events_topic:
                 self._events.put((t, values))
             return
-        w = self._w
+        wi = self._wi
+        w = wi[0]
         buf = self._buf
         off = _HDR.size + (w % self.slots) * SLOT
         if buf[off]:  # the writer has not emptied this slot: the ring is full
@@ -141,7 +158,36 @@ class RingRecorder:
             return
         ent[1].pack_into(buf, off + 1, ent[0], t, ent[2], VERSION, *values)
         buf[off] = 1  # publish: the payload is complete
-        self._w = w + 1
+        wi[0] = w + 1
+
+    def offer_group(self, g: int, t: float, *values) -> None:
+        """One message of each topic of group g (the index into ``groups``) at log time t: their values one after
+        the other, in the group's order."""
+        if self._buf[17]:
+            return
+        gid, st, members = self.groups[g]
+        wi = self._wi
+        w = wi[0]
+        buf = self._buf
+        off = _HDR.size + (w % self.slots) * SLOT
+        if buf[off]:
+            self.dropped_group(g)
+            return
+        st.pack_into(buf, off + 1, gid, t, *values)
+        buf[off] = 1
+        wi[0] = w + 1
+
+    def dropped_group(self, g: int) -> None:
+        """Count a group's slot the full ring did not take: one drop per topic."""
+        for topic in self.groups[g][2]:
+            self.drops[topic] = self.drops.get(topic, 0) + 1
+
+    def ring_args(self, g: int) -> dict:
+        """What a service._kernel.TickWriter needs to write group g's slots itself (same ring, same write index);
+        close it before this recorder."""
+        gid, st, _members = self.groups[g]
+        return {"ring": self._buf, "ring_index": self._wi, "slots": self.slots, "group_id": gid,
+                "group_format": st.format}
 
     def close(self) -> None:
         if self.drops and self._events_topic:
@@ -220,7 +266,8 @@ class TickIndex:
 
 
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
-            rotate_s=None, parent: int | None = None, ready=None, cpus: list[int] | None = None) -> None:
+            rotate_s=None, parent: int | None = None, ready=None, cpus: list[int] | None = None,
+            groups: list[tuple[int, ...]] = ()) -> None:
     import importlib
     from queue import Empty
 
@@ -264,6 +311,16 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
     from schemas.messages import Event
 
     ev_fields = tuple(Event.model_fields)
+    # per group: its payload struct (members' fields, no magic or version) and (topic id, first, end) per member
+    group_structs, group_parts = [], []
+    for members in groups:
+        group_structs.append(struct.Struct("<" + "".join(codecs[m].struct.format[3:] for m in members)))
+        parts, a = [], 0
+        for m in members:
+            n = len(codecs[m].fields)
+            parts.append((m, a, a + n))
+            a += n
+        group_parts.append(parts)
     paths = [path]
     index = TickIndex.for_topics(topics, [m for *_, m in spec])
     index_kinds = index.kinds if index is not None else ()
@@ -325,6 +382,23 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             pass
         return n
 
+    def record(k: int, t: float, vals: tuple) -> None:
+        """One message of topic k: into the tick index, and as JSON text into the file."""
+        nonlocal part_bytes
+        if k in index_kinds and index.take(k, vals):
+            index.flush(f)
+        raw = vals
+        if bools[k]:
+            vals = tuple(("true" if v else "false") if j in bools[k] else v for j, v in enumerate(vals))
+        text = templates[k] % vals
+        if rotate_bytes or rotate_s:
+            maybe_rotate(t)
+            part_bytes += len(text)
+        if "nan" in text or "inf" in text:  # non-finite floats are not JSON text (no field name has these)
+            f.add(topics[k], t, dict(zip(fields[k], raw, strict=True)))
+        else:
+            f.add_raw(topics[k], t, text.encode())
+
     # the recorded process, named by itself: reading getppid() here would be too late if it died while this
     # process was still importing (then the orphan never noticed, and idled forever)
     parent = parent or os.getppid()
@@ -334,31 +408,26 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
             off = _HDR.size + (r % slots) * SLOT
             if buf[off]:  # a full slot
                 k, t = _SLOT_HDR.unpack_from(buf, off + 1)
-                c = codecs[k]
-                vals = c.struct.unpack_from(buf, off + _PAYLOAD)[2:]
-                buf[off] = 0  # free it
-                if k in index_kinds and index.take(k, vals):
-                    index.flush(f)
-                if bools[k]:
-                    vals = tuple(("true" if v else "false") if j in bools[k] else v for j, v in enumerate(vals))
-                text = templates[k] % vals
-                if rotate_bytes or rotate_s:
-                    maybe_rotate(t)
-                    part_bytes += len(text)
-                if "nan" in text or "inf" in text:  # non-finite floats are not JSON text (no field name has these)
-                    f.add(topics[k], t, dict(zip(fields[k], c.struct.unpack_from(buf, off + _PAYLOAD)[2:],
-                                                 strict=True)))
+                if k >= GROUP_BASE:
+                    g = k - GROUP_BASE
+                    vals = group_structs[g].unpack_from(buf, off + _PAYLOAD)
+                    buf[off] = 0  # free it
+                    for m, a, b in group_parts[g]:
+                        record(m, t, vals[a:b])
+                        written += 1
                 else:
-                    f.add_raw(topics[k], t, text.encode())
-                written += 1
+                    vals = codecs[k].struct.unpack_from(buf, off + _PAYLOAD)[2:]
+                    buf[off] = 0
+                    record(k, t, vals)
+                    written += 1
                 r += 1
                 if r & 0xFF == 0:
-                    _IDX.pack_into(buf, 8, r)
+                    _IDX.pack_into(buf, 8, written)
                     if r & 0xFFF == 0:  # a ring that never empties must not starve the event queue
                         written += drain()
                 continue
-            _IDX.pack_into(buf, 8, r)
             written += drain()
+            _IDX.pack_into(buf, 8, written)
             if buf[16] or os.getppid() != parent:  # stopped, or the recorded process died: finish
                 if not buf[_HDR.size + (r % slots) * SLOT]:
                     if buf[16]:  # items put just before the stop may still be in the queue's pipe
