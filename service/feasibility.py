@@ -68,6 +68,14 @@ class WindowRange:
     k: int
     z_in: tuple[float, float, float, float]
     z_out: list[float] = field(default_factory=lambda: [math.inf, -math.inf, math.inf, -math.inf])
+    rel_tol: float = 1e-9
+
+    def __post_init__(self) -> None:
+        # z_in widened by rel_tol of each element's largest magnitude (at least 1): what a sample is checked against
+        P_lo, P_hi, Q_lo, Q_hi = self.z_in
+        tP = self.rel_tol * max(abs(P_lo), abs(P_hi), 1.0)
+        tQ = self.rel_tol * max(abs(Q_lo), abs(Q_hi), 1.0)
+        self.bounds = (P_lo - tP, P_hi + tP, Q_lo - tQ, Q_hi + tQ)
 
     @property
     def inside(self) -> bool:
@@ -94,32 +102,45 @@ class FeasibilityMonitor:
         self.violations: list[Violation] | deque[Violation] = [] if self._keep_first else deque(maxlen=keep_recent)
         self._outside = {"P": False, "Qdot": False}
         self.count = 0
+        self._cur_k: int | None = None  # the window update last looked up, and its record (None: no range)
+        self._cur: WindowRange | None = None
 
     def set_range(self, k: int, z_in: tuple[float, float, float, float]) -> None:
-        self.windows[k] = WindowRange(k, z_in)
+        self.windows[k] = WindowRange(k, z_in, rel_tol=self.rel_tol)
+        self._cur_k = None  # update looks it up again
         if self.keep_windows is not None and len(self.windows) > self.keep_windows:
             for old in sorted(self.windows)[: len(self.windows) - self.keep_windows]:
                 del self.windows[old]
 
     def update(self, t: float, P_out: float, Qdot_out: float) -> None:
+        """One sample of the outgoing rates P^{r,out} (W) and Qdot^{r,out} (W/s) at time t (s). Called every tick:
+        the window's record is looked up when the window changes, and a violation is written only when an
+        element leaves its range."""
         k = int(t // self.window_s)
-        w = self.windows.get(k)
+        if k != self._cur_k:
+            self._cur_k, self._cur = k, self.windows.get(k)
+        w = self._cur
         if w is None:
             return  # no forecast for this window: nothing to check against
         o = w.z_out
-        o[0] = min(o[0], P_out)
-        o[1] = max(o[1], P_out)
-        o[2] = min(o[2], Qdot_out)
-        o[3] = max(o[3], Qdot_out)
-        P_lo, P_hi, Q_lo, Q_hi = w.z_in
-        self._check(t, "P", P_out, P_lo, P_hi)
-        self._check(t, "Qdot", Qdot_out, Q_lo, Q_hi)
+        if P_out < o[0]:
+            o[0] = P_out
+        if P_out > o[1]:
+            o[1] = P_out
+        if Qdot_out < o[2]:
+            o[2] = Qdot_out
+        if Qdot_out > o[3]:
+            o[3] = Qdot_out
+        P_lo, P_hi, Q_lo, Q_hi = w.bounds
+        out_P = not P_lo <= P_out <= P_hi
+        out_Q = not Q_lo <= Qdot_out <= Q_hi
+        if out_P and not self._outside["P"]:
+            self._violation(t, "P", P_out, w.z_in[0], w.z_in[1])
+        if out_Q and not self._outside["Qdot"]:
+            self._violation(t, "Qdot", Qdot_out, w.z_in[2], w.z_in[3])
+        self._outside["P"], self._outside["Qdot"] = out_P, out_Q
 
-    def _check(self, t: float, name: str, x: float, lo: float, hi: float) -> None:
-        tol = self.rel_tol * max(abs(lo), abs(hi), 1.0)
-        out = not (lo - tol <= x <= hi + tol)
-        if out and not self._outside[name]:
-            if not self._keep_first or len(self.violations) < self.MAX_VIOLATIONS:
-                self.violations.append(Violation(t, name, x, lo, hi))
-            self.count += 1
-        self._outside[name] = out
+    def _violation(self, t: float, name: str, x: float, lo: float, hi: float) -> None:
+        if not self._keep_first or len(self.violations) < self.MAX_VIOLATIONS:
+            self.violations.append(Violation(t, name, x, lo, hi))
+        self.count += 1
