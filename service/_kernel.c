@@ -537,6 +537,23 @@ static PyObject *Kernel_step_values(Kernel *self, PyObject *const *args, Py_ssiz
                          o[O_LATE] != 0.0 ? Py_True : Py_False, o[O_EST + E_PROP], o[O_EST + E_QROP]);
 }
 
+/* est_record() -> (E, p, E_t, y_z, y_z_balance, y_ref, eta, u_z, P_r_out_port, Qdot_r_out_port, z_out0, z_out1):
+ * core.CoreBase.est_record, from the buffer in one call */
+static PyObject *Kernel_est_record(Kernel *self, PyObject *Py_UNUSED(ignored))
+{
+    const double *o = self->o, *e = o + O_EST;
+    return Py_BuildValue("(dddddddddddd)", e[E_E], e[E_P], e[E_ET], o[O_YZ], e[E_YZB], o[O_YREF], e[E_ETA], o[O_UZ],
+                         e[E_PROP], e[E_QROP], o[O_Z0], o[O_Z1]);
+}
+
+/* interaction() -> (P_r_out_port, P_dot_r_out_port, Qdot_r_out_port, z_run0, z_run1): core.CoreBase.interaction */
+static PyObject *Kernel_interaction(Kernel *self, PyObject *Py_UNUSED(ignored))
+{
+    const double *o = self->o, *e = o + O_EST, *fv = o + O_FITV, *fs = o + O_FITS;
+    double P_dot = -(fs[1] * fv[2] + fv[1] * fs[2]);
+    return Py_BuildValue("(ddddd)", e[E_PROP], P_dot, e[E_QROP], o[O_ZRUN0], o[O_ZRUN1]);
+}
+
 /* run(inputs, du_out, width=9, next_out=None): a whole replay segment without returning to Python. inputs holds
  * n rows of width >= 9 doubles, the first 9 (seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped) read; a row
  * with stepped == 0 is not given to the core and answers 0.0 with no plan (the daemon held: ControlCore.hold).
@@ -614,6 +631,8 @@ static PyMethodDef Kernel_methods[] = {
     {"step_values", (PyCFunction)(void (*)(void))Kernel_step_values, METH_FASTCALL,
      "one control step; (du_dt, du_dt_next, limited, late, P_r_out_port or None, Qdot_r_out_port)"},
     {"run", (PyCFunction)Kernel_run, METH_VARARGS, "many steps (replay)"},
+    {"est_record", (PyCFunction)Kernel_est_record, METH_NOARGS, "the estimator record's values (CoreBase.est_record)"},
+    {"interaction", (PyCFunction)Kernel_interaction, METH_NOARGS, "the outgoing interaction (CoreBase.interaction)"},
     {"applied_rate", (PyCFunction)Kernel_applied_rate, METH_NOARGS, "du/dt acting now"},
     {"hold", (PyCFunction)Kernel_hold, METH_O, "sample seq was answered with du/dt = 0, no plan"},
     {NULL, NULL, 0, NULL},

@@ -248,6 +248,24 @@ class CoreBase:
         """Sample seq was answered with du/dt = 0 and no plan, without a step (inactive, no reference)."""
         raise NotImplementedError
 
+    def est_record(self) -> tuple:
+        """After a step with an estimate: (E J, p W, E_t J, y_z W, y_z_balance W, y_ref W, eta W, u_z W/s,
+        P_r_out_port W, Qdot_r_out_port W/s, z_out0 J, z_out1 W), the fields of schemas Estimate after t."""
+        o = self.out
+        e = o.est
+        return (e.E, e.p, e.E_t, o.y_z, e.y_z_balance, o.y_ref, e.eta, o.u_z, e.P_r_out_port, e.Qdot_r_out_port,
+                o.z_out0, o.z_out1)
+
+    def interaction(self) -> tuple:
+        """After a step with an estimate: the outgoing interaction variable at the port, (P^{r,out} W,
+        dP^{r,out}/dt W/s, Qdot^{r,out} W/s, z_out energy integral J, z_out reactive integral W). The power's rate
+        is that of P^{r,out} = -v i_2 from the filtered slopes: -(dv/dt i_2 + v di_2/dt)."""
+        fit = self.estimator.fit
+        v, i2 = fit.value[1], fit.value[2]
+        e = self.out.est
+        z0, z1 = self.estimator.z_out
+        return e.P_r_out_port, -(fit.slope[1] * i2 + v * fit.slope[2]), e.Qdot_r_out_port, z0, z1
+
     def step_values(self, seq: int, t: float, i: float, v: float, u: float, i_load: float, P_r_in: float,
                     P_r_in_dot: float) -> tuple:
         """step() for the daemon's tick: (du_dt V/s, du_dt_next V/s, limited, late, P_r_out_port W or None before

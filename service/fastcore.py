@@ -118,6 +118,8 @@ class CompiledCore(CoreBase):
         self.estimator = _KernelEstimator(self._b)
         self._step = self._k.step
         self.step_values = self._k.step_values
+        self.est_record = self._k.est_record
+        self.interaction = self._k.interaction
 
     def _cache(self) -> None:
         super()._cache()

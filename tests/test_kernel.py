@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from schemas.scenario import load_scenario
-from service.core import ControlCore, make_core
+from service.core import ControlCore, CoreBase, make_core
 from service.sim import run
 from service.types import Incoming, Sample
 
@@ -79,7 +79,12 @@ def test_reset_set_gains_and_views_match():
                 core.set_gains(faster)
             if k == 400:
                 core.reset()
-            o = core.step(Sample(*r[:6]), Incoming(r[6], r[7]))
+            if k % 50 == 0:  # the daemon's one-call step: what it returns is what step() leaves in out
+                vals = core.step_values(*r)
+                o = core.out
+                assert vals == (o.du_dt, o.du_dt_next, o.limited, o.late, o.est.P_r_out_port, o.est.Qdot_r_out_port)
+            else:
+                o = core.step(Sample(*r[:6]), Incoming(r[6], r[7]))
             est = o.est
             seen[j].append((o.du_dt, o.du_dt_next, o.du_dt_raw, o.limited, o.u_z, o.y_z, o.y_ref, o.e, o.i_pred,
                             o.v_pred, o.u_pred, o.z_out0, o.z_out1, o.seq, o.t, core.applied_rate(), core.steps,
@@ -88,7 +93,11 @@ def test_reset_set_gains_and_views_match():
                                                                                    "y_z", "y_z_balance", "eta",
                                                                                    "P_r_out", "Qdot_r_out",
                                                                                    "P_r_out_port",
-                                                                                   "Qdot_r_out_port"))))
+                                                                                   "Qdot_r_out_port")),
+                            *core.est_record(), *core.interaction()))
+            if k % 50 == 25:  # the compiled core's one-call readers against the generic ones over its views
+                assert core.est_record() == CoreBase.est_record(core)
+                assert core.interaction() == CoreBase.interaction(core)
     assert seen[0] == seen[1]
     assert seen[0][399][16] == 400 and seen[0][400][16] == 1  # reset really happened
 
