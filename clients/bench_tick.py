@@ -1,6 +1,7 @@
 """Benches that drive a real daemon by hand, without the network.
 
-``energyctl bench tick``: the daemon's whole tick (decode, checks, core, publish, record). An opened daemon
+``energyctl bench tick``: the daemon's whole tick (decode, checks, core, publish, record), and of it the command's
+``put`` (Zenoh's work on the loop thread) and the rest (compute). An opened daemon
 (loopback Zenoh session, no peers, recorder process writing to a temporary directory) is handed the
 measurements of a closed-loop simulator run one by one through the same method the loop calls, with the
 loop's own statistics update; nothing arrives over a socket and nothing waits, so this is what our code
@@ -73,7 +74,7 @@ def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: di
             t0 = now()
             d._tick(payload, t0)
             t1 = now()
-            d.stats.record(0, t1 - t0)
+            d.stats.record(0, t1 - t0, d.put_ns)
             times[k] = t1 - t0
         gc.unfreeze()
         st = d.status()
@@ -93,7 +94,10 @@ def bench_tick(scenario_path: str, n: int = 20_000) -> dict:
                 times, st = drive_daemon(scn, tr, tmp, impl)
             except ImportError:
                 continue
+        loop = st["loop"]
         res[impl] = {**percentiles(times), "core_impl": impl,
+                     "compute_p50_us": loop["compute_us"]["p50"], "compute_p99_us": loop["compute_us"]["p99"],
+                     "put_p50_us": loop["publish_us"]["p50"], "put_p99_us": loop["publish_us"]["p99"],
                      "recorder_drops": (st.get("logging") or {}).get("drops"),
                      "loop_delay_measured": st["loop_delay"]["measured_samples"]}
     return res

@@ -37,6 +37,7 @@ from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from .forecast import ForecastWorker
 
 _CMD_PACK, _CMD_MAGIC, _VERSION = CMD.struct.pack, CMD.magic, VERSION  # CMD.encode without its call, on the tick
+_now_ns = time.monotonic_ns
 STATES = ("configured", "active", "inactive", "shutdown")
 HIST = 2048  # ticks of command history for the measured loop delay (a power of two)
 LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
@@ -50,6 +51,7 @@ class LoopStats:
         self.n = n
         self.period = array("q", bytes(8 * n))
         self.exec = array("q", bytes(8 * n))
+        self.publish = array("q", bytes(8 * n))  # of exec: the command's put (Zenoh's own work on this thread)
         self.k = 0
         self.ticks = 0
         self.overruns = 0  # whole periods skipped because a tick ran late
@@ -58,10 +60,11 @@ class LoopStats:
         self.lockstep_timeouts = 0
         self.window_exec_max = self.window_period_max = 0  # since the last loop record
 
-    def record(self, period_ns: int, exec_ns: int) -> None:
+    def record(self, period_ns: int, exec_ns: int, publish_ns: int = 0) -> None:
         k = self.k
         self.period[k] = period_ns
         self.exec[k] = exec_ns
+        self.publish[k] = publish_ns
         self.k = k + 1 if k + 1 < self.n else 0
         self.ticks += 1
         if exec_ns > self.window_exec_max:
@@ -78,8 +81,12 @@ class LoopStats:
         out = {"ticks": self.ticks, "overruns": self.overruns, "no_new_sample": self.no_new_sample,
                "missing_samples": self.missing_samples, "lockstep_timeouts": self.lockstep_timeouts,
                "overrun_pct": 100.0 * self.overruns / max(1, self.ticks + self.overruns)}
-        for name, arr in (("period_us", self.period), ("exec_us", self.exec)):
-            vals = np.frombuffer(arr, dtype=np.int64)[:m].astype(np.float64)
+        ex = np.frombuffer(self.exec, dtype=np.int64)[:m]
+        pub = np.frombuffer(self.publish, dtype=np.int64)[:m]
+        # exec_us: the whole tick; publish_us: its command put; compute_us: the rest (read, checks, core, record)
+        for name, vals in (("period_us", np.frombuffer(self.period, dtype=np.int64)[:m]), ("exec_us", ex),
+                           ("publish_us", pub), ("compute_us", ex - pub)):
+            vals = vals.astype(np.float64)
             if name == "period_us":
                 vals = vals[vals > 0]
             if vals.size:
@@ -139,6 +146,7 @@ class Daemon:
         self._pending: tuple[ControllerConfig, threading.Event, str] | None = None
         self.recorder = None
         self._fast = None  # the compiled stepped tick (open: _tick_writer)
+        self.put_ns = 0  # the last tick's command put (ns)
         self._idle = 0
         self.restarts = 0
         self.late_ticks = 0  # ticks at which the core saw its commands not acting in time (late_detect_V)
@@ -320,7 +328,7 @@ class Daemon:
                 self._idle = 0
                 self._tick(s.payload.to_bytes(), start)
             end = now_ns()
-            stats.record(start - prev if prev else 0, end - start)
+            stats.record(start - prev if prev else 0, end - start, self.put_ns if s is not None else 0)
             prev = start
             nxt += period
             if end > nxt:  # ran into the next period: skip whole periods, count them
@@ -396,7 +404,7 @@ class Daemon:
             t_exec = now_ns()
             self._tick(payload, t_exec)
             end = now_ns()
-            stats.record(start - prev if prev else 0, end - t_exec)
+            stats.record(start - prev if prev else 0, end - t_exec, self.put_ns)
             prev = start
             if max_ticks is not None and stats.ticks >= max_ticks:
                 break
@@ -506,6 +514,7 @@ class Daemon:
         self._hist_seq[j], self._hist_u[j], self._hist_r[j] = seq, u, du
 
     def _tick(self, payload: bytes, now: int) -> None:
+        self.put_ns = 0
         self._poll_neighbours(now)
         try:
             v = MEAS.decode(payload)
@@ -564,7 +573,6 @@ class Daemon:
         if stepped and fast is not None:  # the compiled core: the lines below, in C, in one call (_tick_writer)
             cmd, du, du_next, limited, late, P_out, Qdot_out, dropped = fast.step(seq, t, v[2], v[3], v[4], v[5],
                                                                                   P_in, P_in_dot)
-            self.cmd_pub.put(cmd)
             if dropped:
                 rec.dropped_group(0)
         else:
@@ -575,11 +583,14 @@ class Daemon:
                 du, du_next, limited = 0.0, 0.0, False  # inactive, or no fresh reference: hold the source voltage
                 late, P_out = False, None
                 self.core.hold(seq)
-            self.cmd_pub.put(_CMD_PACK(_CMD_MAGIC, _VERSION, seq, t, du, du_next, limited))
+            cmd = _CMD_PACK(_CMD_MAGIC, _VERSION, seq, t, du, du_next, limited)
             self._remember(seq, v[4], du)
             if rec is not None:  # values only: encoding and I/O happen in the recorder's process
                 # meas, z_in and cmd in one ring slot (RingRecorder groups)
                 rec.offer_group(0, t, *v, seq, t, P_in, P_in_dot, stepped, seq, t, du, du_next, limited)
+        t_put = _now_ns()
+        self.cmd_pub.put(cmd)
+        self.put_ns = _now_ns() - t_put  # the transport's share of the tick (LoopStats "publish_us")
         self.last_cmd = (seq, t, du, du_next, limited)
         if late:
             self.late_ticks += 1

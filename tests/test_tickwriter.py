@@ -85,6 +85,10 @@ def test_the_compiled_tick_publishes_records_and_remembers_what_the_python_lines
     assert st_c["loop"]["missing_samples"] == st_p["loop"]["missing_samples"] == 5
     assert st_c["rejected"] == st_p["rejected"] and sum(st_c["rejected"].values()) == 3
     assert st_c["logging"]["drops"] == st_p["logging"]["drops"] == {}
+    loop = st_c["loop"]  # each tick's time split: the command's put, and the rest
+    assert 0 < loop["publish_us"]["p50"] < loop["exec_us"]["p50"]
+    assert 0 < loop["compute_us"]["p50"] < loop["exec_us"]["p50"]
+    assert loop["compute_us"]["max"] <= loop["exec_us"]["max"]
 
 
 def _ring(slots: int):
