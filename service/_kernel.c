@@ -659,9 +659,10 @@ static PyTypeObject KernelType = {
  * u, du/dt), and the recorder's grouped slot of meas, z_in and cmd (service/shmlog.py RingRecorder.offer_group,
  * group 0), in one call. The layouts are checked against the codecs' struct formats at construction. */
 
+#define MEAS_FORMAT "<BBQddddd"
 #define CMD_FORMAT "<BBQdddB"
 #define GROUP_FORMAT "<BdQdddddQdddBQdddB"
-enum { CMD_SIZE = 35, GROUP_SIZE = 123, RING_HDR = 24, RING_SLOT = 128, RING_FAILED = 17 };
+enum { MEAS_SIZE = 50, CMD_SIZE = 35, GROUP_SIZE = 123, RING_HDR = 24, RING_SLOT = 128, RING_FAILED = 17 };
 
 typedef struct {
     PyObject_HEAD
@@ -669,7 +670,9 @@ typedef struct {
     Py_buffer hseq, hu, hr, ring, widx;
     int has_ring;
     long long slots, hist_mask;
-    unsigned char cmd_magic, version, group_id;
+    unsigned char cmd_magic, version, group_id, meas_magic;
+    int has_meas;  /* accept() configured */
+    double v_min, v_max, i_max;
 } TickWriter;
 
 static void put_u64(unsigned char *p, double x) { uint64_t q = (uint64_t)x; memcpy(p, &q, 8); }
@@ -686,23 +689,33 @@ static void TickWriter_release(TickWriter *self)
 }
 
 /* TickWriter(kernel, hist_seq, hist_u, hist_r, cmd_format, cmd_magic, version, ring=None, ring_index=None, slots=0,
- *            group_id=0, group_format="") */
+ *            group_id=0, group_format="", meas_format="", meas_magic=0, v_min=0, v_max=0, i_max=0) */
 static int TickWriter_init(TickWriter *self, PyObject *args, PyObject *kw)
 {
     static char *names[] = {"kernel", "hist_seq", "hist_u", "hist_r", "cmd_format", "cmd_magic", "version", "ring",
-                            "ring_index", "slots", "group_id", "group_format", NULL};
+                            "ring_index", "slots", "group_id", "group_format", "meas_format", "meas_magic", "v_min",
+                            "v_max", "i_max", NULL};
     PyObject *kern, *hs, *hu, *hr, *ring = Py_None, *widx = Py_None;
-    const char *cmd_fmt, *group_fmt = "";
-    int magic, version, group_id = 0;
+    const char *cmd_fmt, *group_fmt = "", *meas_fmt = "";
+    int magic, version, group_id = 0, meas_magic = 0;
     long long slots = 0;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLis", names, &KernelType, &kern, &hs, &hu, &hr, &cmd_fmt,
-                                     &magic, &version, &ring, &widx, &slots, &group_id, &group_fmt))
+    double v_min = 0.0, v_max = 0.0, i_max = 0.0;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLissiddd", names, &KernelType, &kern, &hs, &hu, &hr,
+                                     &cmd_fmt, &magic, &version, &ring, &widx, &slots, &group_id, &group_fmt,
+                                     &meas_fmt, &meas_magic, &v_min, &v_max, &i_max))
         return -1;
     TickWriter_release(self);
     if (strcmp(cmd_fmt, CMD_FORMAT) != 0) {
         PyErr_Format(PyExc_ValueError, "TickWriter: the command layout is %s, compiled for " CMD_FORMAT, cmd_fmt);
         return -1;
     }
+    self->has_meas = meas_fmt[0] != 0;
+    if (self->has_meas && strcmp(meas_fmt, MEAS_FORMAT) != 0) {
+        PyErr_Format(PyExc_ValueError, "TickWriter: the measurement layout is %s, compiled for " MEAS_FORMAT, meas_fmt);
+        return -1;
+    }
+    self->meas_magic = (unsigned char)meas_magic;
+    self->v_min = v_min; self->v_max = v_max; self->i_max = i_max;
     if (PyObject_GetBuffer(hs, &self->hseq, PyBUF_WRITABLE) < 0 || PyObject_GetBuffer(hu, &self->hu, PyBUF_WRITABLE)
         < 0 || PyObject_GetBuffer(hr, &self->hr, PyBUF_WRITABLE) < 0)
         return -1;
@@ -803,6 +816,43 @@ static PyObject *TickWriter_step(TickWriter *self, PyObject *const *args, Py_ssi
                          dropped ? Py_True : Py_False);
 }
 
+/* accept(payload, last_seq, last_t) -> the measurement's values (seq, t, i, v, u, i_load), exactly as schemas.codec
+ * MEAS.decode gives them, when the daemon's checks in _tick would take it as the next ordinary sample: well formed
+ * and finite, v in [v_min, v_max], |i| and |i_load| <= i_max, seq after last_seq >= 0 (not the first sample or a
+ * restart), t after last_t; else None, and the Python checks decide (and name the reason). */
+static PyObject *TickWriter_accept(TickWriter *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "accept(payload, last_seq, last_t) takes 3 arguments");
+        return NULL;
+    }
+    if (!self->has_meas) {
+        PyErr_SetString(PyExc_RuntimeError, "TickWriter: no measurement layout given");
+        return NULL;
+    }
+    long long last_seq = PyLong_AsLongLong(args[1]);
+    double last_t = PyFloat_AsDouble(args[2]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (!PyBytes_Check(args[0]) || PyBytes_GET_SIZE(args[0]) != MEAS_SIZE || last_seq < 0)
+        Py_RETURN_NONE;
+    const unsigned char *p = (const unsigned char *)PyBytes_AS_STRING(args[0]);
+    if (p[0] != self->meas_magic || p[1] != self->version)
+        Py_RETURN_NONE;
+    uint64_t seq;
+    double x[5];
+    memcpy(&seq, p + 2, 8);
+    memcpy(x, p + 10, sizeof(x));
+    for (int j = 0; j < 5; j++)
+        if (!isfinite(x[j]))
+            Py_RETURN_NONE;
+    if (!(self->v_min <= x[2] && x[2] <= self->v_max) || fabs(x[1]) > self->i_max || fabs(x[4]) > self->i_max)
+        Py_RETURN_NONE;
+    if (seq > (uint64_t)INT64_MAX || (long long)seq <= last_seq || !(x[0] > last_t))
+        Py_RETURN_NONE;
+    return Py_BuildValue("(Kddddd)", (unsigned long long)seq, x[0], x[1], x[2], x[3], x[4]);
+}
+
 static PyObject *TickWriter_close(TickWriter *self, PyObject *Py_UNUSED(ignored))
 {
     TickWriter_release(self);
@@ -813,6 +863,8 @@ static PyMethodDef TickWriter_methods[] = {
     {"step", (PyCFunction)(void (*)(void))TickWriter_step, METH_FASTCALL,
      "step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot) -> (command payload, du_dt, du_dt_next, limited, late, "
      "P_r_out_port or None, Qdot_r_out_port, dropped)"},
+    {"accept", (PyCFunction)(void (*)(void))TickWriter_accept, METH_FASTCALL,
+     "accept(payload, last_seq, last_t) -> (seq, t, i, v, u, i_load) of an ordinary next sample, else None"},
     {"close", (PyCFunction)TickWriter_close, METH_NOARGS, "release the buffers (before the recorder closes its ring)"},
     {NULL, NULL, 0, NULL},
 };

@@ -156,6 +156,7 @@ class Daemon:
         self._pending_state: str | None = None
         self._stop = threading.Event()
         self._last_seq = -1
+        self._last_t = 0.0  # time of the last sample stepped on (s): last_sample[1]
         self._z_seq = 0
         self.feas = FeasibilityMonitor(cfg.forecast_window_s, keep_windows=100, keep_recent=5)
         self._tau_p = tau_prime(cfg.model.L_H, cfg.model.R_ohm, effective_gain(cfg.controller, cfg.model))
@@ -249,16 +250,19 @@ class Daemon:
                             groups=[(self.t_meas, self.t_zin, self.t_cmd)])  # offer_group(0, ...) in _tick
 
     def _tick_writer(self):
-        """With the compiled core: a service._kernel.TickWriter doing a stepped tick's step, command payload,
-        history entry and recorder slot in one call (the Python lines in _tick are its reference); else None."""
+        """With the compiled core: a service._kernel.TickWriter checking an ordinary sample (accept; _checked is its
+        reference) and doing a stepped tick's step, command payload, history entry and recorder slot in one call (the
+        Python lines in _tick are its reference); else None."""
         k = getattr(self.core, "_k", None)
         if k is None:
             return None
         from ._kernel import TickWriter
 
         ring = self.recorder.ring_args(0) if self.recorder is not None else {}
+        c = self.cfg
         return TickWriter(k, self._hist_seq, self._hist_u, self._hist_r, CMD.struct.format, CMD.magic, VERSION,
-                          **ring)
+                          **ring, meas_format=MEAS.struct.format, meas_magic=MEAS.magic, v_min=c.meas_v_min_V,
+                          v_max=c.meas_v_max_V, i_max=c.meas_i_max_A)
 
     def close(self) -> None:
         self.state = "shutdown"
@@ -513,14 +517,15 @@ class Daemon:
         j = seq & (HIST - 1)
         self._hist_seq[j], self._hist_u[j], self._hist_r[j] = seq, u, du
 
-    def _tick(self, payload: bytes, now: int) -> None:
-        self.put_ns = 0
-        self._poll_neighbours(now)
+    def _checked(self, payload: bytes, now: int) -> tuple | None:
+        """The measurement's values if it is the next sample to step on (a restart re-initialises the core first);
+        else None, after rejecting it (counted, named; malformed, a duplicate seq) or holding it (answered with
+        du/dt = 0: out of range, time not advancing)."""
         try:
             v = MEAS.decode(payload)
         except DecodeError as e:
             self._reject(f"meas.{e.field}: invalid", now, e.reason)
-            return
+            return None
         seq, t = v[0], v[1]
         c = self.cfg
         if not c.meas_v_min_V <= v[3] <= c.meas_v_max_V:
@@ -537,15 +542,28 @@ class Daemon:
                 self.recorder.offer(self.t_ev, t, (t, 0, "plant_restart", "{}"))
         if seq <= self._last_seq:
             self._reject("meas.seq: duplicate or not increasing", now)
-            return
+            return None
         if self.last_sample is not None and self._last_seq >= 0 and t <= self.last_sample[1]:
             return self._hold(v, now, "meas.t: not after the previous sample")
+        return v
+
+    def _tick(self, payload: bytes, now: int) -> None:
+        self.put_ns = 0
+        self._poll_neighbours(now)
+        fast = self._fast
+        # an ordinary next sample passes the compiled check (TickWriter.accept, the same conditions as _checked);
+        # anything else goes through _checked, which names and counts what it refuses
+        v = fast.accept(payload, self._last_seq, self._last_t) if fast is not None else None
+        if v is None and (v := self._checked(payload, now)) is None:
+            return
+        seq, t = v[0], v[1]
         if self.state == "degraded":
             self.state = "active"
         if self._last_seq >= 0 and seq > self._last_seq + 1:
             self.stats.missing_samples += seq - self._last_seq - 1
         self._last_seq = seq
         self.last_sample = v
+        self._last_t = t
         stale_s = self.cfg.neighbour_stale_s
         stale_ns = int(stale_s * 1e9)
         P_in = P_in_dot = 0.0
@@ -569,7 +587,6 @@ class Daemon:
             self.reference = "local"
         stepped = self.state == "active" and fresh
         rec = self.recorder
-        fast = self._fast
         if stepped and fast is not None:  # the compiled core: the lines below, in C, in one call (_tick_writer)
             cmd, du, du_next, limited, late, P_out, Qdot_out, dropped = fast.step(seq, t, v[2], v[3], v[4], v[5],
                                                                                   P_in, P_in_dot)

@@ -13,6 +13,8 @@ import struct
 
 import pytest
 from conftest import ROOT
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from schemas.codec import CMD, MEAS, VERSION
@@ -138,3 +140,68 @@ def test_the_tick_writers_slot_is_offer_groups_and_a_full_ring_is_a_drop():
     with pytest.raises(ValueError, match="group layout"):
         TickWriter(core._k, hs, hu, hr, CMD.struct.format, CMD.magic, VERSION, ring=ring, ring_index=wi, slots=2,
                    group_id=GROUP_BASE, group_format="<Bd")
+
+
+def _accept_writer():
+    from array import array
+
+    from service._kernel import TickWriter
+
+    from schemas.scenario import load_scenario
+    from service.fastcore import CompiledCore
+
+    scn = load_scenario(ROOT / "clients" / "embedded" / "demo.toml")
+    core = CompiledCore(scn.controller, scn.model, 1e-4, 2)
+    hist = array("q", [-1] * 8), array("d", [0.0] * 8), array("d", [0.0] * 8)
+    return TickWriter(core._k, *hist, CMD.struct.format, CMD.magic, VERSION, meas_format=MEAS.struct.format,
+                      meas_magic=MEAS.magic, v_min=10.0, v_max=150.0, i_max=60.0), core
+
+
+def _python_would_step(payload: bytes, last_seq: int, last_t: float):
+    """What Daemon._checked steps on, for a daemon past its first sample (limits as in _accept_writer)."""
+    from schemas.codec import DecodeError
+
+    try:
+        v = MEAS.decode(payload)
+    except DecodeError:
+        return None
+    if not 10.0 <= v[3] <= 150.0 or abs(v[2]) > 60.0 or abs(v[5]) > 60.0:
+        return None
+    if v[0] == 0 and last_seq > 0:
+        return None  # a restart: _checked re-initialises, accept leaves it to _checked
+    if v[0] <= last_seq or v[1] <= last_t:
+        return None
+    return v
+
+
+_any = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-200.0, 200.0))
+
+
+@settings(max_examples=400, deadline=None)
+@example(seq=5, t=0.5, i=1.0, v=80.0, u=80.0, il=1.0, last_seq=4, last_t=0.5, damage="")  # time not advancing
+@example(seq=4, t=0.6, i=1.0, v=80.0, u=80.0, il=1.0, last_seq=4, last_t=0.5, damage="")  # duplicate seq
+@example(seq=0, t=0.6, i=1.0, v=80.0, u=80.0, il=1.0, last_seq=4, last_t=0.5, damage="")  # restart
+@example(seq=5, t=0.6, i=60.0, v=150.0, u=80.0, il=-60.0, last_seq=4, last_t=0.5, damage="")  # on the limits
+@example(seq=5, t=0.6, i=1.0, v=150.00000000000003, u=80.0, il=1.0, last_seq=4, last_t=0.5, damage="")  # just off
+@example(seq=2**63, t=0.6, i=1.0, v=80.0, u=80.0, il=1.0, last_seq=4, last_t=0.5, damage="")  # beyond int64
+@given(seq=st.integers(0, 2**64 - 1) | st.integers(0, 50), t=_any, i=_any, v=_any, u=_any, il=_any,
+       last_seq=st.integers(-1, 40), last_t=st.floats(-1.0, 1.0), damage=st.sampled_from(["", "magic", "version",
+                                                                                          "short", "long"]))
+def test_accept_takes_exactly_the_samples_the_python_checks_step_on(seq, t, i, v, u, il, last_seq, last_t, damage):
+    tw, _core = _accept_writer()
+    payload = bytearray(MEAS.struct.pack(MEAS.magic, VERSION, seq, t, i, v, u, il))
+    if damage == "magic":
+        payload[0] ^= 0xFF
+    elif damage == "version":
+        payload[1] = VERSION + 1
+    elif damage == "short":
+        payload = payload[:-1]
+    elif damage == "long":
+        payload += b"\x00"
+    payload = bytes(payload)
+    got = tw.accept(payload, last_seq, last_t)
+    # None leaves it to _checked: always right, and what accept does for the first sample and seq beyond int64
+    want = _python_would_step(payload, last_seq, last_t) if last_seq >= 0 and seq < 2**63 else None
+    assert got == want
+    if got is not None:
+        assert type(got[0]) is int and got == MEAS.decode(payload)  # the very tuple decode gives
