@@ -156,7 +156,6 @@ class Daemon:
         self._pending_state: str | None = None
         self._stop = threading.Event()
         self._last_seq = -1
-        self._last_t = 0.0  # time of the last sample stepped on (s): last_sample[1]
         self._z_seq = 0
         self.feas = FeasibilityMonitor(cfg.forecast_window_s, keep_windows=100, keep_recent=5)
         self._tau_p = tau_prime(cfg.model.L_H, cfg.model.R_ohm, effective_gain(cfg.controller, cfg.model))
@@ -553,7 +552,8 @@ class Daemon:
         fast = self._fast
         # an ordinary next sample passes the compiled check (TickWriter.accept, the same conditions as _checked);
         # anything else goes through _checked, which names and counts what it refuses
-        v = fast.accept(payload, self._last_seq, self._last_t) if fast is not None else None
+        ls = self.last_sample
+        v = fast.accept(payload, self._last_seq, ls[1] if ls else 0.0) if fast is not None else None
         if v is None and (v := self._checked(payload, now)) is None:
             return
         seq, t = v[0], v[1]
@@ -563,7 +563,6 @@ class Daemon:
             self.stats.missing_samples += seq - self._last_seq - 1
         self._last_seq = seq
         self.last_sample = v
-        self._last_t = t
         stale_s = self.cfg.neighbour_stale_s
         stale_ns = int(stale_s * 1e9)
         P_in = P_in_dot = 0.0
