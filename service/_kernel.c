@@ -521,6 +521,18 @@ static PyObject *Kernel_step(Kernel *self, PyObject *const *args, Py_ssize_t nar
     return PyBool_FromLong(took);
 }
 
+/* The outgoing rates at the port after a step, for the daemon's tick: P_r_out_port as a new float (None before the
+ * first estimate), and Qdot_r_out_port into *qdot (0 then). */
+static PyObject *port_rates(const double *o, double *qdot)
+{
+    if (o[O_HAS_EST] == 0.0) {
+        *qdot = 0.0;
+        Py_RETURN_NONE;
+    }
+    *qdot = o[O_EST + E_QROP];
+    return PyFloat_FromDouble(o[O_EST + E_PROP]);
+}
+
 /* step_values(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot) -> (du_dt, du_dt_next, limited, late, P_r_out_port or
  * None before the first estimate, Qdot_r_out_port): one step and what the daemon's tick uses of it, in one call */
 static PyObject *Kernel_step_values(Kernel *self, PyObject *const *args, Py_ssize_t nargs)
@@ -530,11 +542,12 @@ static PyObject *Kernel_step_values(Kernel *self, PyObject *const *args, Py_ssiz
         return NULL;
     kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
     const double *o = self->o;
-    if (o[O_HAS_EST] == 0.0)
-        return Py_BuildValue("ddOOOd", o[O_DU], o[O_DU_NEXT], o[O_LIMITED] != 0.0 ? Py_True : Py_False,
-                             o[O_LATE] != 0.0 ? Py_True : Py_False, Py_None, 0.0);
-    return Py_BuildValue("ddOOdd", o[O_DU], o[O_DU_NEXT], o[O_LIMITED] != 0.0 ? Py_True : Py_False,
-                         o[O_LATE] != 0.0 ? Py_True : Py_False, o[O_EST + E_PROP], o[O_EST + E_QROP]);
+    double qdot;
+    PyObject *P_out = port_rates(o, &qdot);
+    if (P_out == NULL)
+        return NULL;
+    return Py_BuildValue("ddOONd", o[O_DU], o[O_DU_NEXT], o[O_LIMITED] != 0.0 ? Py_True : Py_False,
+                         o[O_LATE] != 0.0 ? Py_True : Py_False, P_out, qdot);
 }
 
 /* est_record() -> (E, p, E_t, y_z, y_z_balance, y_ref, eta, u_z, P_r_out_port, Qdot_r_out_port, z_out0, z_out1):
@@ -809,11 +822,14 @@ static PyObject *TickWriter_step(TickWriter *self, PyObject *const *args, Py_ssi
     PyObject *payload = PyBytes_FromStringAndSize((const char *)cmd, CMD_SIZE);
     if (payload == NULL)
         return NULL;
-    PyObject *late = o[O_LATE] != 0.0 ? Py_True : Py_False, *limited = lim ? Py_True : Py_False;
-    if (o[O_HAS_EST] == 0.0)
-        return Py_BuildValue("NddOOOdO", payload, du, dn, limited, late, Py_None, 0.0, dropped ? Py_True : Py_False);
-    return Py_BuildValue("NddOOddO", payload, du, dn, limited, late, o[O_EST + E_PROP], o[O_EST + E_QROP],
-                         dropped ? Py_True : Py_False);
+    double qdot;
+    PyObject *P_out = port_rates(o, &qdot);
+    if (P_out == NULL) {
+        Py_DECREF(payload);
+        return NULL;
+    }
+    return Py_BuildValue("NddOONdO", payload, du, dn, lim ? Py_True : Py_False, o[O_LATE] != 0.0 ? Py_True : Py_False,
+                         P_out, qdot, dropped ? Py_True : Py_False);
 }
 
 /* accept(payload, last_seq, last_t) -> the measurement's values (seq, t, i, v, u, i_load), exactly as schemas.codec
