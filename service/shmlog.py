@@ -36,6 +36,11 @@ _PAYLOAD = 1 + _SLOT_HDR.size
 
 _IDX = struct.Struct("<Q")
 GROUP_BASE = 128  # slot topic ids from here on name a group of topics (RingRecorder groups)
+
+
+def _group_fields(codecs: list[Codec]) -> str:
+    """struct format of a group's payload: each member's fields one after the other, without "<", magic, version."""
+    return "".join(c.struct.format[3:] for c in codecs)
 # the writer's nap when the ring is empty: long enough that its wake-ups (200/s) do not disturb the loop's core,
 # short against the ring (131 072 slots = 4 s of the daemon's 32 k messages/s)
 IDLE_SLEEP_S = 0.005
@@ -74,8 +79,7 @@ class RingRecorder:
         self.groups: list[tuple[int, struct.Struct, tuple[str, ...]]] = []
         group_spec = []
         for g, members in enumerate(groups):
-            fmt = _SLOT_HDR.format + "".join(topics[m][1].struct.format[3:] for m in members)
-            st = struct.Struct(fmt)
+            st = struct.Struct(_SLOT_HDR.format + _group_fields([topics[m][1] for m in members]))
             assert 1 + st.size <= SLOT, members
             self.groups.append((GROUP_BASE + g, st, tuple(members)))
             group_spec.append(tuple(ids[m] for m in members))
@@ -314,7 +318,7 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
     # per group: its payload struct (members' fields, no magic or version) and (topic id, first, end) per member
     group_structs, group_parts = [], []
     for members in groups:
-        group_structs.append(struct.Struct("<" + "".join(codecs[m].struct.format[3:] for m in members)))
+        group_structs.append(struct.Struct("<" + _group_fields([codecs[m] for m in members])))
         parts, a = [], 0
         for m in members:
             n = len(codecs[m].fields)
