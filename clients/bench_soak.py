@@ -122,6 +122,8 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             "rss_slope_kib_per_min": slope * 60 if slope is not None else None,
             "loop_ticks": loop.get("ticks"), "overruns": loop.get("overruns"), "overrun_pct": loop.get("overrun_pct"),
             "no_new_sample": loop.get("no_new_sample"), "missing_samples": loop.get("missing_samples"),
+            "loop_exec_us": loop.get("exec_us"), "loop_publish_us": loop.get("publish_us"),
+            "loop_compute_us": loop.get("compute_us"), "loop_period_us": loop.get("period_us"),
             "recorder_written": logging.get("written"), "recorder_drops": logging.get("drops"),
             "recorder_state": logging.get("state"), "queries": queries,
             "rejected": status.get("rejected"), "final_state": status.get("state")}

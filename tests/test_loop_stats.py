@@ -1,0 +1,44 @@
+"""The loop's time statistics (service.daemon.LoopStats): what status reports, and what a status query costs."""
+
+from __future__ import annotations
+
+import random
+
+from service.daemon import STATS_EVERY_NS, LoopStats
+
+
+def _filled(n: int, execs_us: list[int], publish_us: int = 1) -> LoopStats:
+    s = LoopStats(n)
+    for k, e in enumerate(execs_us):
+        s.record(0 if k == 0 else 100_000, e * 1000, publish_us * 1000)
+    return s
+
+
+def test_percentiles_are_nearest_rank_over_the_last_n_ticks():
+    execs = list(range(1, 1002))  # 1..1001 us
+    random.Random(3).shuffle(execs)
+    s = _filled(1001, execs)
+    out = s.summary(0, fresh=True)
+    ex = out["exec_us"]
+    assert (ex["p50"], ex["p99"], ex["max"], ex["mean"]) == (501.0, 991.0, 1001.0, 501.0)
+    assert out["compute_us"]["max"] == 1000.0 and out["publish_us"]["p99"] == 1.0  # exec - the command's put
+    assert out["period_us"]["p50"] == 100.0  # the first tick has no period (0): not counted
+    # a ring of 100 keeps only the last 100 ticks
+    s = _filled(100, [5] * 1000 + [7] * 100)
+    assert s.summary(0, fresh=True)["exec_us"]["max"] == 7.0 and s.summary(0, fresh=True)["exec_us"]["p50"] == 7.0
+
+
+def test_a_status_query_reuses_the_distributions_for_a_while_and_counters_are_always_current():
+    """Recomputing the distributions at each of 100 queries a second took more than a core and the GIL the loop
+    needs; the counters are cheap and stay exact."""
+    s = _filled(1000, [10] * 1000)
+    t0 = 5_000_000_000
+    assert s.summary(t0)["exec_us"]["max"] == 10.0
+    s.record(100_000, 900_000)  # a 900 us tick
+    s.overruns += 8
+    soon = s.summary(t0 + STATS_EVERY_NS - 1)
+    assert soon["ticks"] == 1001 and soon["overruns"] == 8  # counters now
+    assert soon["exec_us"]["max"] == 10.0  # distributions from t0
+    assert s.summary(t0 + STATS_EVERY_NS - 1, fresh=True)["exec_us"]["max"] == 900.0  # fresh: now
+    s.record(100_000, 950_000)
+    assert s.summary(t0 + 2 * STATS_EVERY_NS)["exec_us"]["max"] == 950.0  # old enough: recomputed
