@@ -332,6 +332,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                                                    *(args.set or [])])
         res = recovery(scn, progress=lambda m: print(m, file=sys.stderr, flush=True), realtime=rt,
                        rate_hz=DEMO_REALTIME_HZ, controller_delay=DEMO_REALTIME_DELAY)
+    elif args.what == "wake":
+        from schemas.component import ComponentConfig
+
+        from .bench_wake import bench_wake
+
+        res = bench_wake(slack_ns=ComponentConfig.model_fields["timer_slack_ns"].default, n=args.n or 20_000)
     elif args.what == "latency":
         from .bench_latency import bench_latency
 
@@ -650,9 +656,10 @@ def build_parser() -> argparse.ArgumentParser:
                                      "daemon log replayed from its tick index and from JSON), 'realtime' (the "
                                      "highest control rate meeting issue 3's criteria), 'soak' (RSS, drops, "
                                      "overruns over minutes), 'recovery' (kill -9 plant / neighbour, time "
-                                     "back to +-2 %%)")
+                                     "back to +-2 %%), 'wake' (how late a 60 us timed wait ends at the "
+                                     "kernel's default timer slack and at timer_slack_ns's)")
     b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "replay", "realtime", "soak",
-                                    "recovery"])
+                                    "recovery", "wake"])
     b.add_argument("--rates", metavar="HZ,HZ,...", help="realtime: control rates to try (default 1000,2000,5000,10000)")
     b.add_argument("--delays", metavar="N,N,...", help="realtime: loop-delay schedules to try, samples (default 1,2,3)")
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
@@ -661,7 +668,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recorder: paced run length (default 10); replay: log length (default 10); realtime: each "
                         "run (default 2)")
     b.add_argument("-n", type=int, default=None,
-                   help="latency: round trips per target (default 3000); tick: ticks (default 20000)")
+                   help="latency: round trips per target (default 3000); tick: ticks (default 20000); wake: waits "
+                        "per setting (default 20000)")
     b.add_argument("--wait", choices=["block", "spin"], default=None,
                    help="latency, realtime: the daemon's wait for samples (default: block)")
     b.add_argument("--catch-up", type=int, default=None, metavar="N",

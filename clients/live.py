@@ -38,14 +38,14 @@ def install_stop_handlers(stop: threading.Event) -> None:
 
 def start_process(cfg, command: str) -> threading.Event:
     """First thing in energyctl run/plant/load: the stop event, its signal handlers, and the configured priority
-    (before any thread exists, so that Zenoh's threads and spawned processes inherit it)."""
-    from service.priority import set_nice
+    and timer slack (before any thread exists, so that Zenoh's threads and spawned processes inherit them)."""
+    from service.priority import set_nice, set_timer_slack
 
     stop = threading.Event()
     install_stop_handlers(stop)
-    refused = set_nice(cfg.nice)
-    if refused:
-        print(f"energyctl {command}: {refused}", file=sys.stderr, flush=True)
+    for refused in (set_nice(cfg.nice), set_timer_slack(cfg.timer_slack_ns)):
+        if refused:
+            print(f"energyctl {command}: {refused}", file=sys.stderr, flush=True)
     return stop
 
 

@@ -10,14 +10,53 @@ Linux keeps the nice value per thread and a new thread or process inherits it fr
 ``set_nice`` is called first thing in a process's main thread: every thread created afterwards (Zenoh's runtime,
 the loop, the query threads) and every process it spawns starts there. The background processes then lower
 themselves with ``background`` to at least their fixed level, never above their parent.
+
+**Timer slack.** Linux lets a timed wait of a normal thread (sleep, a timed lock or queue get) end up to the thread's
+timer slack late, 50 us by default, so that wake-ups can be coalesced. Measured here (a 60 us sleep, 20 000 times):
+50 us slack overshoots by 56 us p50 and 123 us p99.9; 1 us slack by 6.5 us p50 and 72 us p99.9. At 10 kHz the 50 us
+is half a period, and a loop can only hit its instants by spinning through it (a whole core, on a machine of two).
+``set_timer_slack`` is called next to ``set_nice`` and, like the nice value, is inherited by every thread and process
+started afterwards; ``background`` puts the background processes back to the kernel's 50 us.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
+import sys
 
 RECORDER_NICE = 10  # the recorder's writer: it has a 4 s ring (at 10 kHz) to catch up in, so it can wait
 FORECAST_NICE = 19  # the forecast worker: a window ahead (hundreds of ms) for a job of 4-40 ms
+DEFAULT_TIMER_SLACK_NS = 50_000  # the kernel's default for a normal thread
+_PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30  # linux/prctl.h
+
+
+def _prctl():
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+def timer_slack_ns() -> int | None:
+    """The calling thread's timer slack, ns (None where the system has no prctl)."""
+    prctl = _prctl()
+    return None if prctl is None else int(prctl(_PR_GET_TIMERSLACK, 0, 0, 0, 0))
+
+
+def set_timer_slack(ns: int | None) -> str | None:
+    """Set the calling thread's timer slack to ``ns`` (>= 1; None: leave it). Returns a one-line reason when the
+    system has no such setting or refused, else None. Needs no privilege."""
+    if ns is None:
+        return None
+    prctl = _prctl()
+    if prctl is None:
+        return f"cannot set timer slack {ns} ns: no prctl on {sys.platform}"
+    if prctl(_PR_SET_TIMERSLACK, ctypes.c_ulong(ns), 0, 0, 0) != 0:
+        return f"cannot set timer slack {ns} ns: {os.strerror(ctypes.get_errno())}"
+    return None
 
 
 def set_nice(target: int | None) -> str | None:
@@ -36,8 +75,9 @@ def set_nice(target: int | None) -> str | None:
 
 
 def background(level: int) -> None:
-    """Lower the calling process to nice ``level``, or stay where it is if that is lower already. Lowering
-    priority needs no privilege."""
+    """Lower the calling process to nice ``level``, or stay where it is if that is lower already, and give it the
+    kernel's default timer slack back (its waits need not be punctual). Neither needs privilege."""
+    set_timer_slack(DEFAULT_TIMER_SLACK_NS)
     now = os.getpriority(os.PRIO_PROCESS, 0)
     if level > now:
         os.setpriority(os.PRIO_PROCESS, 0, level)

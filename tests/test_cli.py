@@ -102,6 +102,23 @@ def test_bench_core_and_tick_measure_both_cores_in_one_run(capsys):
         assert tick[impl]["recorder_drops"] == {}
 
 
+def test_bench_wake_measures_both_slack_settings_and_gives_the_thread_its_own_back(capsys):
+    from service.priority import DEFAULT_TIMER_SLACK_NS, timer_slack_ns
+
+    before = timer_slack_ns()
+    if before is None:
+        import pytest
+
+        pytest.skip("no timer slack on this system (the bench says so instead)")
+    assert main(["bench", "wake", "-n", "200", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    for wait in ("sleep", "queue_get"):
+        for ns in (DEFAULT_TIMER_SLACK_NS, 1000):
+            o = res[f"{wait}_overshoot_us_slack_{ns}ns"]
+            assert o["p50"] <= o["p99"] <= o["max"]
+    assert timer_slack_ns() == before
+
+
 def test_realtime_bench_judges_each_criterion():
     """bench realtime's verdict: every criterion of issue 3 can fail a run on its own."""
     from clients.bench_realtime import judge

@@ -108,3 +108,42 @@ def test_the_recorders_writer_runs_on_the_cpus_it_is_given(tmp_path):
         rec.close()
     with pytest.raises(ValidationError, match="log_writer_cpus"):
         ComponentConfig.model_validate({"id": "a", "log_writer_cpus": [max(have) + 100]})
+
+
+def test_a_configured_timer_slack_reaches_later_threads_and_the_background_processes_get_the_default_back(tmp_path):
+    """timer_slack_ns is set first thing, like nice: a thread started afterwards (as Zenoh's and the loop's are)
+    has it; the recorder's writer, spawned from it, goes back to the kernel's 50 us, and so does a process that
+    calls background."""
+    if priority.timer_slack_ns() is None:
+        import pytest
+
+        pytest.skip("no timer slack here (Linux prctl)")
+    res = in_new_process(["import os, threading",
+                          "from clients.live import start_process",
+                          "from schemas.codec import MEAS",
+                          "from schemas.component import ComponentConfig",
+                          "from service import priority",
+                          "from service.shmlog import RingRecorder",
+                          "stop = start_process(ComponentConfig(id='x', timer_slack_ns=2000), 'run')",
+                          "seen = []",
+                          "t = threading.Thread(target=lambda: seen.append(priority.timer_slack_ns()))",
+                          "t.start(); t.join()",
+                          f"rec = RingRecorder({str(tmp_path / 'x.mcap')!r}, "
+                          "{'m': ('energyctl.Measurement', MEAS)}, {})",
+                          "assert rec.wait_ready()",
+                          "p = f'/proc/{rec.pid}/timerslack_ns'",
+                          "writer = open(p).read().strip() if os.access(p, os.R_OK) else '50000'",
+                          "rec.close()",
+                          "priority.background(10)",
+                          "print(seen[0], writer, priority.timer_slack_ns())"])
+    assert res.stdout.split() == ["2000", str(priority.DEFAULT_TIMER_SLACK_NS), str(priority.DEFAULT_TIMER_SLACK_NS)]
+    assert res.stderr == ""
+
+
+def test_a_timer_slack_the_system_refuses_is_one_line_not_an_error():
+    from unittest import mock
+
+    with mock.patch.object(priority, "_prctl", return_value=None):
+        assert "cannot set timer slack 1000 ns" in priority.set_timer_slack(1000)
+        assert priority.timer_slack_ns() is None
+    assert priority.set_timer_slack(None) is None
