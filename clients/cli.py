@@ -332,6 +332,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                                                    *(args.set or [])])
         res = recovery(scn, progress=lambda m: print(m, file=sys.stderr, flush=True), realtime=rt,
                        rate_hz=DEMO_REALTIME_HZ, controller_delay=DEMO_REALTIME_DELAY)
+    elif args.what == "middleware":
+        from .bench_middleware import bench_middleware
+
+        res = bench_middleware(n=args.n or 3000, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
     elif args.what == "wake":
         from schemas.component import ComponentConfig
 
@@ -657,9 +661,10 @@ def build_parser() -> argparse.ArgumentParser:
                                      "highest control rate meeting issue 3's criteria), 'soak' (RSS, drops, "
                                      "overruns over minutes), 'recovery' (kill -9 plant / neighbour, time "
                                      "back to +-2 %%), 'wake' (how late a 60 us timed wait ends at the "
-                                     "kernel's default timer slack and at timer_slack_ns's)")
+                                     "kernel's default timer slack and at timer_slack_ns's), 'middleware' (the "
+                                     "design notes' Zenoh and MCAP facts, re-measured)")
     b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "replay", "realtime", "soak",
-                                    "recovery", "wake"])
+                                    "recovery", "wake", "middleware"])
     b.add_argument("--rates", metavar="HZ,HZ,...", help="realtime: control rates to try (default 1000,2000,5000,10000)")
     b.add_argument("--delays", metavar="N,N,...", help="realtime: loop-delay schedules to try, samples (default 1,2,3)")
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
@@ -669,7 +674,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "run (default 2)")
     b.add_argument("-n", type=int, default=None,
                    help="latency: round trips per target (default 3000); tick: ticks (default 20000); wake: waits "
-                        "per setting (default 20000)")
+                        "per setting (default 20000); middleware: puts and pings (default 3000)")
     b.add_argument("--wait", choices=["block", "spin"], default=None,
                    help="latency, realtime: the daemon's wait for samples (default: block)")
     b.add_argument("--catch-up", type=int, default=None, metavar="N",

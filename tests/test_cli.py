@@ -155,3 +155,20 @@ def test_realtime_stacks_turn_late_detection_on_unless_the_scenario_says_otherwi
     assert tol([], lockstep=True) == 0.0
     assert tol(["controller.late_detect_V=0"]) == 0.0
     assert tol(["controller.late_detect_V=0.5"]) == 0.5
+
+
+def test_bench_middleware_measures_each_fact_of_the_design_notes():
+    """A short run: every part reports, and the numbers hang together (one way is part of the round trip; a
+    1 kHz loop polling a ring sees the 1 kHz stream in most periods; a killed token holder is seen gone)."""
+    from clients.bench_middleware import bench_middleware
+
+    r = bench_middleware(n=100, receive_s=0.5)
+    assert r["put_us_no_subscriber"]["n"] == r["put_us_subscriber_in_another_process"]["n"] == 100
+    assert r["one_way_us"]["n"] > 50 and r["one_way_us"]["p50"] < r["round_trip_us"]["p50"]
+    for how in ("callback", "ring_channel_polled"):
+        rc = r[f"receive_{how}"]
+        assert rc["periods"] > 300 and rc["periods_with_a_new_sample"] > 0.5 * rc["periods"]
+    assert r["get_us"]["n"] >= 45
+    assert len(r["liveliness_sigkill_ms"]["ms"]) == 3 and max(r["liveliness_sigkill_ms"]["ms"]) < 15_000
+    assert set(r["encode_us"]) == {"struct_codec", "pydantic_json", "stdlib_json"}
+    assert r["mcap"]["chunk_256KiB"]["msgs_per_s"] > 0
