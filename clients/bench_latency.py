@@ -22,6 +22,7 @@ from schemas.component import ZenohConfig
 from service.bus import free_tcp_port, key, open_session, publisher, queued
 
 from .live import Processes, _toml, wait_until
+from .machine import StealMeter
 
 ECHO = """
 import sys, json, time, zenoh
@@ -75,6 +76,7 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4) -> di
                 raise RuntimeError("daemon or echo did not come up")
             time.sleep(0.3)
             rtt: dict[str, list[int]] = {"daemon": [], "echo": []}
+            steal = StealMeter().start()
             lost = {"daemon": 0, "echo": 0}
             for k in range(2 * n):
                 name = "daemon" if k % 2 == 0 else "echo"
@@ -90,6 +92,7 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4) -> di
                 while not q.empty():
                     q.get_nowait()
                 time.sleep(gap_s)
+            steal.stop()
         finally:
             session.close()
         procs.stop_all()
@@ -99,4 +102,5 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4) -> di
            "daemon_tick_compute_us": d.get("compute_us"), "daemon_tick_put_us": d.get("publish_us")}
     res["ratio_p50"] = res["daemon"]["p50_us"] / res["echo"]["p50_us"]
     res["ratio_p99"] = res["daemon"]["p99_us"] / res["echo"]["p99_us"]
+    res["host_steal_pct"] = steal.pct
     return res

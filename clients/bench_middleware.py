@@ -40,6 +40,7 @@ from schemas.messages import Measurement
 from service.bus import free_tcp_port, open_session, publisher
 
 from .live import wait_until
+from .machine import StealMeter
 
 PEER = """
 import struct, sys, threading, time, zenoh
@@ -279,6 +280,7 @@ def bench_middleware(n: int = 3000, receive_s: float = 3.0, progress=lambda m: N
     res: dict = {"bench": "middleware", "zenoh": "eclipse-zenoh", "payload_bytes": 64}
     listener = open_session(ZenohConfig(mode="peer", listen=[ep]))
     peer = None
+    steal = StealMeter().start()
     try:
         progress("put with no subscriber")
         pub = publisher(listener, "mw/nobody")
@@ -313,6 +315,8 @@ def bench_middleware(n: int = 3000, receive_s: float = 3.0, progress=lambda m: N
     progress("encoding and MCAP writer")
     res["encode_us"] = _encode()
     res["mcap"] = _mcap(tmp)
+    steal.stop()
+    res["host_steal_pct"] = steal.pct
     for p in tmp.glob("*"):
         p.unlink()
     tmp.rmdir()

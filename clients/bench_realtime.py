@@ -26,7 +26,11 @@ def judge(res: dict) -> dict:
            "missed_or_late_pct": missed_pct, "latency_p50_us": res.get("latency_us", {}).get("p50"),
            "latency_p99_us": res.get("latency_us", {}).get("p99"),
            # not a criterion: how often the stand-in plant itself missed its sampling instant (its own stalls)
-           "plant_late_samples_pct": 100.0 * c.get("plant_late_samples", 0) / n}
+           "plant_late_samples_pct": 100.0 * c.get("plant_late_samples", 0) / n,
+           # not a criterion either: missed + late among the samples the stand-in sent, and applied, on time
+           "missed_or_late_rig_on_time_pct": (round(100.0 * c["missed_or_late_rig_on_time"]
+                                                    / c["rig_on_time_samples"], 3)
+                                              if c.get("rig_on_time_samples") else None)}
     row["ok"] = (not m.get("diverged") and dev is not None and dev <= BAND_PCT and overrun_pct < LIMIT_PCT
                  and missed_pct < LIMIT_PCT)
     return row
@@ -37,14 +41,15 @@ def bench_realtime(scn, rates: list[float], delays: list[int], duration_s: float
     """loop: daemon loop settings over the realtime defaults (sample trigger, block wait), e.g. {"wait": "spin",
     "catch_up": 4}; nice: controller and plant priority (default clients.live.REALTIME_NICE)."""
     from .live import run_live
+    from .machine import StealMeter
 
     runs = []
     for rate in rates:
         for d in delays:
-            with tempfile.TemporaryDirectory() as tmp:
+            with tempfile.TemporaryDirectory() as tmp, StealMeter() as steal:
                 res = run_live(scn, lockstep=False, rate_hz=rate, out=None, duration_s=duration_s, controller_delay=d,
                                workdir=tmp, loop=loop, nice=nice)
-            row = {"rate_hz": rate, "delay_samples": d, **judge(res)}
+            row = {"rate_hz": rate, "delay_samples": d, **judge(res), "host_steal_pct": steal.pct}
             runs.append(row)
             if progress:
                 progress(row)

@@ -25,6 +25,8 @@ from schemas.codec import CMD, EST, MEAS, TICK_IN, Z
 from schemas.messages import Estimate, TickInput
 from service.shmlog import RingRecorder
 
+from .machine import StealMeter
+
 EST_FIELDS = tuple(Estimate.model_fields)
 ZIN_FIELDS = tuple(TickInput.model_fields)
 
@@ -120,8 +122,12 @@ def bench_recorder(seconds: float = 10.0, rate_hz: float = 10_000.0, writer_cpus
     tmp = Path(tempfile.mkdtemp(prefix="energyctl-rec-"))
     try:
         bare = bench_bare(20_000, tmp / "bare.mcap")
-        baseline = bench_paced(seconds, rate_hz, None)
-        paced = bench_paced(seconds, rate_hz, tmp / "paced.mcap", writer_cpus)
+        with StealMeter() as m0:
+            baseline = bench_paced(seconds, rate_hz, None)
+        baseline["host_steal_pct"] = m0.pct
+        with StealMeter() as m1:
+            paced = bench_paced(seconds, rate_hz, tmp / "paced.mcap", writer_cpus)
+        paced["host_steal_pct"] = m1.pct
     finally:
         for p in tmp.glob("*.mcap"):
             os.unlink(p)

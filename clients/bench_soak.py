@@ -21,6 +21,7 @@ from schemas.scenario import load_scenario
 from service.bus import free_tcp_port, key, open_session
 
 from .live import Processes, _toml, configs_from_scenario, wait_until
+from .machine import StealMeter
 
 EMBEDDED = Path(__file__).parent / "embedded" / "demo.toml"
 
@@ -56,6 +57,7 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
     stats = tmp / "status.json"
     rss: list[tuple[float, int]] = []
     queries = {"sent": 0, "answered": 0, "failed": 0}
+    steal = None
     with Processes() as procs:
         d = procs.start("daemon", ["run", "--config", str(tmp / "component.toml"), "--stats-out", str(stats)],
                         env=env)
@@ -88,6 +90,7 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             qt = threading.Thread(target=query_loop, daemon=True)
             if query_hz > 0:
                 qt.start()
+            steal = StealMeter().start()
             t0 = time.monotonic()
             last_report = t0
             while time.monotonic() - t0 < seconds:
@@ -99,6 +102,7 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
                     last_report = time.monotonic()
                     sys.stderr.write(f"\rsoak {time.monotonic() - t0:.0f}/{seconds:.0f} s, daemon RSS {r} KiB   ")
                     sys.stderr.flush()
+            steal.stop()
             stop.set()
             if query_hz > 0:
                 qt.join(2.0)
@@ -126,4 +130,5 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             "loop_compute_us": loop.get("compute_us"), "loop_period_us": loop.get("period_us"),
             "recorder_written": logging.get("written"), "recorder_drops": logging.get("drops"),
             "recorder_state": logging.get("state"), "queries": queries,
-            "rejected": status.get("rejected"), "final_state": status.get("state")}
+            "rejected": status.get("rejected"), "final_state": status.get("state"),
+            "host_steal_pct": steal.pct if steal is not None else None}

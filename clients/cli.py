@@ -318,7 +318,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
                              progress=lambda r: print(f"  {r['rate_hz']:g} Hz, delay {r['delay_samples']}: "
                                                       f"{'OK' if r['ok'] else 'no'} (dev {r['v_dev_after_50ms_pct']}, "
                                                       f"overruns {r['overrun_pct']:.2f} %, missed/late "
-                                                      f"{r['missed_or_late_pct']:.2f} %)", file=sys.stderr,
+                                                      f"{r['missed_or_late_pct']:.2f} %; rig on time: "
+                                                      f"{r['missed_or_late_rig_on_time_pct']} %)", file=sys.stderr,
                                                       flush=True))
     elif args.what == "replay":
         from .bench_tick import bench_replay

@@ -62,6 +62,17 @@ def _trace_recorder(cfg: PlantPeerConfig, t_meas: str, t_cmd: str, t_plant: str)
     return RingRecorder(out, topics, {"plant_config": {"json": cfg.model_dump_json()}})
 
 
+def rig_on_time_misses(sent_on_time, answered_in_time, samples: int, d: int) -> dict:
+    """Of the samples j whose own sending and whose command's period j + d both found this stand-in on time
+    (within half a period of the instant), how many were not answered in time: the misses that are the controller's
+    and the transport's, not the rig's own stalls. Samples whose period fell after the run are not counted."""
+    m = max(0, samples - d)
+    sent = np.frombuffer(bytes(sent_on_time[:samples]), dtype=np.uint8).astype(bool)
+    ok = sent[:m] & sent[d:d + m]
+    answered = np.frombuffer(bytes(answered_in_time[:m]), dtype=np.uint8).astype(bool)
+    return {"rig_on_time_samples": int(ok.sum()), "missed_or_late_rig_on_time": int((ok & ~answered).sum())}
+
+
 def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> dict:
     """Run the plant for cfg.duration_s; returns metrics, latency and counters (and writes cfg.out)."""
     load = Profile(cfg.load, cfg.base_dir)
@@ -94,6 +105,9 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
         # plant_late_samples: realtime samples this plant sent more than half a period after their instant
         counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "rejected": 0, "plant_late_samples": 0}
         send_ns = array("q", bytes(8 * N))
+        # realtime: sample k sent within half a period of its instant (this stand-in's own punctuality), and the
+        # command answering sample j taken at its period (in time): the controller's share of the misses
+        sent_on_time, answered_in_time = bytearray(N), bytearray(N)
         lat_ns = array("q")
         delay: deque[float] = deque([0.0] * cfg.delay_samples)
         r_latest = 0.0
@@ -161,6 +175,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             send_ns[k] = now_ns()
             if not lockstep and k > 0 and send_ns[k] - (next_ns - period_ns) > period_ns // 2:
                 counters["plant_late_samples"] += 1  # this stand-in missed its own instant (the VM stalled it)
+            else:
+                sent_on_time[k] = 1
             pub.put(MEAS.encode(k, t, s.i, s.v, s.u, s.i_load))
             counters["samples"] += 1
             du_for_k = math.nan
@@ -189,6 +205,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                 r_latest, fresh = sched.take(k)
                 if fresh:
                     du_for_k = r_latest
+                    if k >= sched.d:
+                        answered_in_time[k - sched.d] = 1
             if cfg.delay_samples:
                 delay.append(r_latest)
                 r_apply = delay.popleft()
@@ -218,6 +236,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
     metrics = compute_metrics(trace, cfg.v_ref_V, cfg.duration_s, diverged, 0)
     counters["missed"] = counters["samples"] - counters["commands"]
     counters.update(sched.counts)
+    if not lockstep:
+        counters.update(rig_on_time_misses(sent_on_time, answered_in_time, counters["samples"], sched.d))
     res = {"metrics": metrics, "counters": counters, "pacing": cfg.pacing, "sample_rate_hz": cfg.sample_rate_hz}
     if lat_ns:
         lat = sorted(lat_ns)

@@ -135,6 +135,23 @@ def test_realtime_bench_judges_each_criterion():
         assert not judge({**good, **bad})["ok"], bad
 
 
+def test_the_controllers_share_of_the_misses_counts_only_samples_the_rig_handled_on_time():
+    """A sample counts when the stand-in sent it on time and was on time at the period its command is for
+    (sample j + d); of those, the ones not answered in time are the controller's and the transport's."""
+    from clients.peers import rig_on_time_misses
+
+    d, n = 2, 10
+    sent = bytearray([1] * n)
+    answered = bytearray([1] * n)
+    sent[3] = 0  # the rig stalled at sample 3: samples 3 (its own) and 1 (its period 3) do not count
+    answered[1] = answered[3] = 0  # ... and their misses are the rig's
+    answered[5] = 0  # sample 5: sent and applied on time, not answered: the controller's
+    r = rig_on_time_misses(sent, answered, n, d)
+    assert r == {"rig_on_time_samples": n - d - 2, "missed_or_late_rig_on_time": 1}
+    answered[9] = 0  # its period (11) is after the run: not counted
+    assert rig_on_time_misses(sent, answered, n, d) == r
+
+
 def test_realtime_stacks_turn_late_detection_on_unless_the_scenario_says_otherwise():
     """configs_from_scenario: realtime sets late_detect_V at 4 sqrt(2) sigma of the u noise; lockstep leaves it off;
     a value the scenario sets, 0 (off) included, is kept."""
@@ -172,3 +189,20 @@ def test_bench_middleware_measures_each_fact_of_the_design_notes():
     assert len(r["liveliness_sigkill_ms"]["ms"]) == 3 and max(r["liveliness_sigkill_ms"]["ms"]) < 15_000
     assert set(r["encode_us"]) == {"struct_codec", "pydantic_json", "stdlib_json"}
     assert r["mcap"]["chunk_256KiB"]["msgs_per_s"] > 0
+
+
+def test_steal_meter_is_the_hosts_share_of_cpu_time_between_start_and_stop(tmp_path, monkeypatch):
+    from clients import machine
+
+    stat = tmp_path / "stat"
+    monkeypatch.setattr(machine, "_STAT", stat)
+    stat.write_text("cpu  100 0 100 700 0 0 0 100 0 0\ncpu0 1 2 3\n")  # 1000 jiffies, 100 stolen
+    m = machine.StealMeter().start()
+    stat.write_text("cpu  400 0 200 1200 0 0 50 150 0 0\n")  # +1000, +50 stolen
+    assert m.stop() == 5.0
+    stat.write_text("no cpu line\n")
+    with machine.StealMeter() as m:
+        pass
+    assert m.pct is None
+    monkeypatch.setattr(machine, "_STAT", tmp_path / "missing")
+    assert machine.cpu_times() is None
