@@ -98,7 +98,9 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             raise RuntimeError(f"no subscriber for {t_meas} within 15 s, though {cfg.controller_id!r} is alive")
         if cfg.start_delay_s:
             stop.wait(cfg.start_delay_s)
-        rows: list[tuple] = []
+        # the trace, PLANT_TRACE's columns row after row: 112 B a sample (a list of tuples took 496 B: 18 GB for an
+        # hour at 10 kHz)
+        rows = array("d")
         # missed: samples whose command never arrived; late: arrived after its sampling instant (dropped);
         # planned_periods: periods run on the plan the previous command carried (its du_dt_next), its successor
         # missing; stale_periods: periods with neither (u held)
@@ -214,7 +216,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                 r_apply = r_latest
             pi, pv, pu = plant.i, plant.v, plant.u
             um = plant.u_m(t)
-            rows.append((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, du_for_k, r_apply,
+            rows.extend((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, du_for_k, r_apply,
                          cfg.plant.R_ohm * pi * pi - (pu + um) * pi, -P_l * cfg.v_ref_V / pv))
             if rec is not None:  # streamed through the recorder process: a killed plant keeps its trace
                 rec.offer(t_meas, t, (k, t, s.i, s.v, s.u, s.i_load))
@@ -229,7 +231,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
     finally:
         if session is not None:
             session.close()
-    cols = np.asarray(rows, dtype=float).reshape(len(rows), len(PLANT_TRACE)).T
+    cols = np.frombuffer(rows, dtype=np.float64).reshape(-1, len(PLANT_TRACE)).T
     trace = {f: cols[j].copy() for j, f in enumerate(PLANT_TRACE)}
     diverged = bool(len(trace["v"]) and not (0.5 * cfg.v_ref_V < trace["v"].min()
                                               and trace["v"].max() < 2 * cfg.v_ref_V))
