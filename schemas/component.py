@@ -65,10 +65,10 @@ class Named(Strict):
                                   "included, set before anything starts; below 0 needs CAP_SYS_NICE (refused: one "
                                   "line on stderr, and it runs at the priority it was started with). Its recorder "
                                   "and forecast processes always run below it (service.priority)")
-    timer_slack_ns: Annotated[int, Field(ge=1, le=1_000_000_000)] | None = Field(
-        default=1000, description="how late the kernel may end this process's timed waits (sleeps, queue timeouts), "
-                                  "ns; Linux's default is 50 000, half a period at 10 kHz. Set like nice, before "
-                                  "anything starts; null leaves the inherited value. Its recorder and forecast "
+    timer_slack_ns: Annotated[int, Field(ge=0, le=1_000_000_000)] = Field(
+        default=1000, description="how late the kernel may end this process's timed waits (sleeps, queue timeouts) "
+                                  "on purpose, ns; Linux's default is 50 000, half a period at 10 kHz. Set like nice, "
+                                  "before anything starts; 0 leaves the inherited value. Its recorder and forecast "
                                   "processes go back to 50 000 (service.priority)")
 
     @field_validator("id")

@@ -47,9 +47,10 @@ def timer_slack_ns() -> int | None:
 
 
 def set_timer_slack(ns: int | None) -> str | None:
-    """Set the calling thread's timer slack to ``ns`` (>= 1; None: leave it). Returns a one-line reason when the
-    system has no such setting or refused, else None. Needs no privilege."""
-    if ns is None:
+    """Set the calling thread's timer slack to ``ns`` (None or 0: leave it; for the kernel 0 would mean "back to
+    the inherited default"). Returns a one-line reason when the system has no such setting or refused, else None.
+    Needs no privilege."""
+    if not ns:
         return None
     prctl = _prctl()
     if prctl is None:

@@ -146,4 +146,6 @@ def test_a_timer_slack_the_system_refuses_is_one_line_not_an_error():
     with mock.patch.object(priority, "_prctl", return_value=None):
         assert "cannot set timer slack 1000 ns" in priority.set_timer_slack(1000)
         assert priority.timer_slack_ns() is None
-    assert priority.set_timer_slack(None) is None
+    before = priority.timer_slack_ns()
+    assert priority.set_timer_slack(None) is None and priority.set_timer_slack(0) is None  # 0: leave it
+    assert priority.timer_slack_ns() == before
