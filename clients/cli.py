@@ -466,7 +466,7 @@ def cmd_load(args: argparse.Namespace) -> int:
 
 
 def cmd_query(args: argparse.Namespace) -> int:
-    from .query import QueryError, flatten, query
+    from .query import QueryError, flatten, query, unit_of
 
     try:
         ans = query(_zenoh_from_args(args), args.prefix, args.component, args.what, args.set, args.timeout)
@@ -476,7 +476,7 @@ def cmd_query(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(ans))
     else:
-        print(render(["field", "value"], [[k, v] for k, v in flatten(ans)]))
+        print(render(["field", "value", "unit"], [[k, v, unit_of(k)] for k, v in flatten(ans)]))
     return 0
 
 

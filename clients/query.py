@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 
 from schemas.codec import DecodeError, Z
 from schemas.component import ZenohConfig
+from schemas.messages import Command, Estimate, Interaction, Measurement
 from service.bus import key, open_session
 
 
@@ -81,3 +83,42 @@ def flatten(d: dict, prefix: str = "") -> list[tuple[str, str]]:
         else:
             rows.append((name, json.dumps(v) if isinstance(v, list) else str(v)))
     return rows
+
+
+_UNIT = re.compile(r"(?:^|,\s*)([A-Za-z%µ][A-Za-z0-9/^%µ]*)\s*(?::|$)")
+
+
+def _model_units(model) -> dict[str, str]:
+    """Field -> unit from a message model's descriptions: "..., W", "..., V/s: more" or just "W/s"."""
+    out = {}
+    for name, f in model.model_fields.items():
+        d = (f.description or "").strip()
+        m = _UNIT.search(d)
+        if m and (m.start() > 0 or m.group(1) == d.split(":")[0].strip()):
+            out[name] = m.group(1)
+    return out
+
+
+# status sections whose fields are a message model's (units from its descriptions); the rest by name
+_SECTION_UNITS = {"last_sample": _model_units(Measurement), "last_command": _model_units(Command),
+                  "estimate": {**_model_units(Estimate), "P_r_out_port": "W", "Qdot_r_out_port": "W/s"}}
+_LEAF_UNITS = {**_model_units(Interaction), **_model_units(Estimate), "P": "W", "P_dot": "W/s", "Qdot": "W/s",
+               "v_range": "V", "u_range": "V", "z_out": "J, W"}
+_SUFFIX_UNITS = (("_V_per_s", "V/s"), ("_W_per_s", "W/s"), ("_per_s", "1/s"), ("_us", "µs"), ("_ms", "ms"),
+                 ("_s", "s"), ("_pct", "%"), ("_hz", "Hz"), ("_V", "V"), ("_A", "A"), ("_W", "W"), ("_J", "J"),
+                 ("_ohm", "Ω"), ("_H", "H"), ("_F", "F"), ("_S", "S"))  # longest first
+
+
+def unit_of(name: str) -> str:
+    """The unit of a flattened status field (``loop.exec_us.p99``, ``estimate.eta``, ``neighbours.load.age_s``),
+    '' when it has none (counts, states, flags)."""
+    parts = name.split(".")
+    if len(parts) == 2 and parts[0] in _SECTION_UNITS:
+        return _SECTION_UNITS[parts[0]].get(parts[1], "")
+    for part in reversed(parts):
+        if part in _LEAF_UNITS and not (part == "t" and len(parts) > 2):
+            return _LEAF_UNITS[part]
+        for suffix, unit in _SUFFIX_UNITS:
+            if part.endswith(suffix):
+                return unit
+    return ""

@@ -206,3 +206,24 @@ def test_steal_meter_is_the_hosts_share_of_cpu_time_between_start_and_stop(tmp_p
     assert m.pct is None
     monkeypatch.setattr(machine, "_STAT", tmp_path / "missing")
     assert machine.cpu_times() is None
+
+
+def test_the_query_table_names_each_fields_unit():
+    """Units come from the message models' descriptions for the sections that are those messages, else from the
+    field's name; counts and states have none."""
+    from clients.query import flatten, unit_of
+
+    status = {"loop": {"ticks": 5, "exec_us": {"p99": 3.0}, "overrun_pct": 0.0, "rate_hz": 1e4},
+              "last_sample": {"seq": 1, "t": 0.1, "i": 15.0, "v": 80.0}, "last_command": {"du_dt_next": 1.0},
+              "estimate": {"E": 24.0, "E_t": 7.0, "eta": -1e4, "Qdot_r_out_port": 3.0}, "u_z": 1.0, "state": "active",
+              "neighbours": {"load": {"age_s": 0.01, "P_r_out": 1200.0, "messages": 9}},
+              "controller": {"limits": {"du_dt_max_V_per_s": 2e5, "i_floor_A": 0.5}, "K_per_s": 2e3,
+                             "lqr_K1_ohm": 0.45}}
+    units = {k: unit_of(k) for k, _v in flatten(status)}
+    assert units == {"loop.ticks": "", "loop.exec_us.p99": "µs", "loop.overrun_pct": "%", "loop.rate_hz": "Hz",
+                     "last_sample.seq": "", "last_sample.t": "s", "last_sample.i": "A", "last_sample.v": "V",
+                     "last_command.du_dt_next": "V/s", "estimate.E": "J", "estimate.E_t": "J/s^2",
+                     "estimate.eta": "W/s", "estimate.Qdot_r_out_port": "W/s", "u_z": "W/s", "state": "",
+                     "neighbours.load.age_s": "s", "neighbours.load.P_r_out": "W", "neighbours.load.messages": "",
+                     "controller.limits.du_dt_max_V_per_s": "V/s", "controller.limits.i_floor_A": "A",
+                     "controller.K_per_s": "1/s", "controller.lqr_K1_ohm": "Ω"}
