@@ -178,6 +178,12 @@ class ControllerConfig(Strict):
                                  "arriving in time, and the prediction takes the ones still in flight as not acting "
                                  "(du/dt = 0) until u follows the commands again; 0 = off. Set it above the u "
                                  "sensor's noise (several times sqrt(2) sigma)")
+    observer_gain: Annotated[float, Field(ge=0, le=1)] = Field(
+        default=0.0, description="where the delay prediction starts: 0 = the raw sample (i, v, u); g in (0, 1] = a "
+                                 "model-based estimate x = x- + g (y - x-), x- the previous estimate carried over "
+                                 "one period by the circuit model at the rate the plant applied (1: the sample). "
+                                 "Sensor noise on u - v drives di/dt through 1/L over the predicted periods; at 1 kHz "
+                                 "with 3 samples of delay the commands were mostly that noise")
     limits: LimitsConfig = LimitsConfig()
 
 

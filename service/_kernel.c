@@ -40,6 +40,9 @@ typedef struct {
     /* gains and limits (set_params) */
     int kind, continuous, cancel_Et, plan;
     double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC, late_tol;
+    double obs; /* observer_gain (0: the prediction starts from the raw sample) */
+    /* the observer: seq of its last estimate, the estimate (i, v, u) and the load power measured with it */
+    double x_seq, x_hat[3], x_P;
     /* late-command detection: the last step's seq and measured u, and the verdict */
     double last_seq_u, last_u;
     int late;
@@ -180,6 +183,9 @@ static void kernel_reset(Kernel *k)
     k->late = 0;
     k->last_seq_u = -2.0;
     k->last_u = 0.0;
+    k->x_seq = -2.0;
+    k->x_hat[0] = k->x_hat[1] = k->x_hat[2] = 0.0;
+    k->x_P = 0.0;
     k->o[O_STEPS] = 0.0;
 }
 
@@ -373,6 +379,30 @@ static double law(const Kernel *k, double i_p, double v_p, double u_p, double P_
     return r;
 }
 
+/* ControlCore._observe: the state the delay prediction starts from, x = x^- + g (y - x^-), x^- the previous
+   estimate carried over one period at the rate the plant applied; from the sample after a gap. Before this step's
+   command is remembered. */
+static void observe(Kernel *k, double seq, double si_, double sv, double su, double si2, int late, double *pi,
+                    double *pv, double *pu)
+{
+    double i, v, u;
+    if (k->x_seq != seq - 1.0) {
+        i = si_; v = sv; u = su;
+    } else {
+        double r = late ? 0.0 : issued(k, seq - 1.0 - k->d);
+        i = k->x_hat[0]; v = k->x_hat[1]; u = k->x_hat[2];
+        predict_in_range(&i, &v, &u, k->x_P, r, k->T, k->n_pred, k->R, k->L, k->C, k->u_min, k->u_max);
+        const double g = k->obs;
+        i = i + g * (si_ - i);
+        v = v + g * (sv - v);
+        u = u + g * (su - u);
+    }
+    k->x_seq = seq;
+    k->x_hat[0] = i; k->x_hat[1] = v; k->x_hat[2] = u;
+    k->x_P = sv * si2;
+    *pi = i; *pv = v; *pu = u;
+}
+
 /* ControlCore.step; returns 1 if the estimator took the sample. */
 static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double su, double si2, double P_in,
                        double P_in_dot)
@@ -412,6 +442,8 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
     double P_meas = sv * si2;
     double Pdot = -P_in_dot;
     double i_p = si_, v_p = sv, u_p = su;
+    if (k->obs > 0.0)
+        observe(k, seq, si_, sv, su, si2, late, &i_p, &v_p, &u_p);
     for (int j = 0; j < d; j++) {
         double r_j = late ? 0.0 : issued(k, seq - d + j);
         predict_in_range(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C,
@@ -481,11 +513,11 @@ static void Kernel_dealloc(Kernel *self)
 
 static PyObject *Kernel_set_params(Kernel *self, PyObject *args)
 {
-    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)dd", &self->kind, &self->continuous, &self->cancel_Et,
+    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)ddd", &self->kind, &self->continuous, &self->cancel_Et,
                           &self->plan,
                           &self->v_ref, &self->K, &self->alpha, &self->phi, &self->decay, &self->lK1, &self->lK2,
                           &self->bK1, &self->bK2, &self->bK3, &self->bPi, &self->u_min, &self->u_max, &self->r_max,
-                          &self->i_floor, &self->keC, &self->late_tol))
+                          &self->i_floor, &self->keC, &self->late_tol, &self->obs))
         return NULL;
     Py_RETURN_NONE;
 }

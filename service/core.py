@@ -228,6 +228,7 @@ class CoreBase:
         self._keC = 0.5 * c.K_E_per_s * self._C if c.regulation == "energy" else 0.0
         self._plan = c.plan_next_period
         self._late_tol = c.late_detect_V
+        self._obs = c.observer_gain
 
     def run_batch(self, rows, du_out, next_out=None) -> None:
         """Step n rows (n x w floats, w >= 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped, then anything;
@@ -301,6 +302,9 @@ class ControlCore(CoreBase):
         self.late = False
         self._last_seq = -2  # seq and measured u of the last step (late-command detection)
         self._last_u = 0.0
+        self._x_seq = -2  # the observer (observer_gain > 0): seq of its last estimate, the estimate (i, v, u) and
+        self._x_hat = (0.0, 0.0, 0.0)  # the load power v i_load (W) measured with it
+        self._x_P = 0.0
         self.estimator.reset()
         self.steps = 0
 
@@ -318,6 +322,24 @@ class ControlCore(CoreBase):
     def hold(self, seq: int) -> None:
         """Sample seq was answered with du/dt = 0 and no plan, without a step (inactive, no reference)."""
         self.pending[seq % (self.d + 1)] = (seq, 0.0, 0.0)
+
+    def _observe(self, s: Sample, late: bool) -> tuple[float, float, float]:
+        """The state (i A, v V, u V) at sample s for the delay prediction to start from:
+        x_k = x_k^- + g (y_k - x_k^-), x_k^- = the previous estimate carried over one period by the circuit model
+        (predict_in_range, load power of the previous sample) at the rate the plant applied there (issued(k - 1 - d);
+        0 when commands are late). Starts again from the sample after a gap (first step, held or missing samples).
+        Call before this step's command is stored."""
+        if self._x_seq != s.seq - 1:
+            x = (s.i, s.v, s.u)
+        else:
+            u_min, u_max = self._lim[0], self._lim[1]
+            r = 0.0 if late else self.issued(s.seq - 1 - self.d)
+            i, v, u = predict_in_range(*self._x_hat, self._x_P, r, self.T, self.n_pred, self._R, self._L, self._C,
+                                       u_min, u_max)
+            g = self._obs
+            x = (i + g * (s.i - i), v + g * (s.v - v), u + g * (s.u - u))
+        self._x_seq, self._x_hat, self._x_P = s.seq, x, s.v * s.i_load
+        return x
 
     def applied_rate(self, seq: int | None = None) -> float:
         """du/dt acting on the plant over the period from sample seq (V/s), as far as the controller knows: what
@@ -349,7 +371,7 @@ class ControlCore(CoreBase):
         # --- state at the start of the period this command will act on (delay prediction) ---
         P_meas = s.v * s.i_load
         Pdot = -inc.P_r_in_dot  # the load's rate as announced by the neighbour
-        i_p, v_p, u_p = s.i, s.v, s.u
+        i_p, v_p, u_p = self._observe(s, late) if self._obs > 0.0 else (s.i, s.v, s.u)
         n = self.n_pred
         for k in range(d):
             r_k = 0.0 if late else self.issued(seq - d + k)

@@ -129,7 +129,8 @@ class CompiledCore(CoreBase):
     def _push(self) -> None:
         v_ref, K, cancel_Et, alpha, phi, decay = self._gains
         self._k.set_params(KIND_CODE[self._kind], int(self._continuous), int(bool(cancel_Et)), int(self._plan),
-                           (v_ref, K, alpha, phi, decay), self._lqr, self._bm, self._lim, self._keC, self._late_tol)
+                           (v_ref, K, alpha, phi, decay), self._lqr, self._bm, self._lim, self._keC, self._late_tol,
+                           self._obs)
 
     def reset(self) -> None:
         self._k.reset()

@@ -37,6 +37,12 @@ CASES = [
     ("fixed", "exact", 0, []),
     ("fblc", "exact", 3, ["timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5"]),  # 4 RK4 steps per period
     ("fblc", "exact", 2, ["controller.late_detect_V=0.01", "timing.command_loss=0.1"]),  # late commands detected
+    # the observer for the prediction's start
+    ("fblc", "exact", 3, ["controller.observer_gain=0.15", "timing.control_rate_hz=1000.0",
+                          "timing.plant_step_s=5e-5"]),
+    ("fblc", "exact", 2, ["controller.observer_gain=0.3", "controller.late_detect_V=0.01", "timing.command_loss=0.1"]),
+    ("fblc", "exact", 0, ["controller.observer_gain=0.5"]),
+    ("lqr", "exact", 3, ["controller.observer_gain=0.2"]),
 ]
 
 
@@ -150,14 +156,16 @@ def test_any_input_same_answer(i, v, u, i2, P, Pd, dt, kind, mapping, d):
         assert x.limited == y.limited
 
 
+@pytest.mark.parametrize("observer", [0.0, 0.2])
 @pytest.mark.parametrize("plan", [True, False])
 @pytest.mark.parametrize("delay", [0, 1, 3])
-def test_skipped_and_held_samples_same_answer(plan, delay):
+def test_skipped_and_held_samples_same_answer(plan, delay, observer):
     """Samples the loop skipped (seq gaps), samples answered by a hold (no step), and a batch with held rows:
     the two cores keep the same history by sequence number, so every later command and plan agrees."""
     scn, rows = _stream()
     T = 1.0 / scn.timing.control_rate_hz
-    ctl = scn.controller.model_copy(update={"plan_next_period": plan, "late_detect_V": 0.002 if plan else 0.0})
+    ctl = scn.controller.model_copy(update={"plan_next_period": plan, "late_detect_V": 0.002 if plan else 0.0,
+                                            "observer_gain": observer})
     cores = [ControlCore(ctl, scn.model, T, delay), make_core(ctl, scn.model, T, delay, "c")]
     skipped = {50, 51, 120, 121, 122, 123, 124, 300}
     held = {60, 61, 200, 301}
