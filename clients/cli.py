@@ -25,7 +25,7 @@ DEMO_REALTIME_HZ = 1000.0  # realtime does not regulate reliably on the 2-vCPU V
 # realtime demo defaults (README "Measured (issue 3)"): a 3-sample schedule (the round trip's p99 exceeds one 1 ms
 # period, often two), the paper gain lowered to 1500/s, and a 50 us plant step (20 RK4 steps per sample, not 100)
 DEMO_REALTIME_DELAY = 3
-DEMO_REALTIME_SETS = ["controller.K_per_s=1500.0", "timing.plant_step_s=5e-5"]
+DEMO_REALTIME_SETS = ["controller.K_per_s=1500.0", "timing.plant_step_s=5e-5", "controller.observer_gain=0.15"]
 
 ROBUSTNESS_GRID = {
     "timing.control_rate_hz": [5000.0, 10000.0, 20000.0],
