@@ -310,7 +310,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "realtime":
         from .bench_realtime import bench_realtime
 
-        scn = _load(args.scenario or str(EMBEDDED / "demo.toml"), list(args.set or []))
+        # with demo --realtime's settings unless --set says otherwise
+        scn = _load(args.scenario or str(EMBEDDED / "demo.toml"), [*DEMO_REALTIME_SETS, *(args.set or [])])
         rates = [float(r) for r in (args.rates or "1000,2000,5000,10000").split(",")]
         delays = [int(x) for x in (args.delays or "1,2,3").split(",")]
         loop = {k: v for k, v in (("wait", args.wait), ("catch_up", args.catch_up)) if v is not None}
@@ -666,7 +667,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "design notes' Zenoh and MCAP facts, re-measured)")
     b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "replay", "realtime", "soak",
                                     "recovery", "wake", "middleware"])
-    b.add_argument("--rates", metavar="HZ,HZ,...", help="realtime: control rates to try (default 1000,2000,5000,10000)")
+    b.add_argument("--rates", metavar="HZ,HZ,...",
+                   help="realtime: control rates to try (default 1000,2000,5000,10000), with "
+                        f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise")
     b.add_argument("--delays", metavar="N,N,...", help="realtime: loop-delay schedules to try, samples (default 1,2,3)")
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
     b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
