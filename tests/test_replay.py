@@ -281,3 +281,17 @@ def test_tick_index_gives_the_json_channels_inputs_and_is_used_only_when_complet
     part = rp.collect([cut])
     assert part.sources == ["json"] and 0 < len(part.keys) < 3000
     assert np.array_equal(part.rows[:, :9], by_json.rows[:len(part.keys), :9])
+
+
+def test_a_daemon_log_with_the_observer_replays_bit_for_bit_and_without_it_does_not(tmp_path):
+    """The observer's estimate is core state carried from tick to tick: the replay rebuilds it from the logged
+    samples (held and skipped ones included), and a what-if without it finds the first divergence."""
+    from clients.bench_tick import _trace, drive_daemon
+
+    scn, tr = _trace(str(SCENARIOS / "paper-varying-load.toml"), 1500)
+    scn = scn.model_copy(update={"controller": scn.controller.model_copy(update={"observer_gain": 0.15})})
+    _times, st = drive_daemon(scn, tr, str(tmp_path), skip={400, 401, 900})
+    r = replay(st["log_path"], progress=False)
+    assert r["identical"] and r["compared"] == 1500 - 3
+    off = replay(st["log_path"], ["controller.observer_gain=0.0"], progress=False)
+    assert not off["identical"]
