@@ -311,17 +311,21 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from .bench_realtime import bench_realtime
 
         # with demo --realtime's settings unless --set says otherwise
-        scn = _load(args.scenario or str(EMBEDDED / "demo.toml"), [*DEMO_REALTIME_SETS, *(args.set or [])])
+        path = args.scenario or str(EMBEDDED / "demo.toml")
+        scn = _load(path, [*DEMO_REALTIME_SETS, *(args.set or [])])
+        versus = _load(path, [*DEMO_REALTIME_SETS, *(args.set or []), *args.versus]) if args.versus else None
         rates = [float(r) for r in (args.rates or "1000,2000,5000,10000").split(",")]
         delays = [int(x) for x in (args.delays or "1,2,3").split(",")]
         loop = {k: v for k, v in (("wait", args.wait), ("catch_up", args.catch_up)) if v is not None}
         res = bench_realtime(scn, rates, delays, args.seconds or 2.0, loop=loop, nice=args.nice,
-                             progress=lambda r: print(f"  {r['rate_hz']:g} Hz, delay {r['delay_samples']}: "
+                             repeats=args.runs, scn_versus=versus,
+                             progress=lambda r: print(f"  {r.get('arm', '')}{' ' if 'arm' in r else ''}"
+                                                      f"{r['rate_hz']:g} Hz, delay {r['delay_samples']}: "
                                                       f"{'OK' if r['ok'] else 'no'} (dev {r['v_dev_after_50ms_pct']}, "
                                                       f"overruns {r['overrun_pct']:.2f} %, missed/late "
                                                       f"{r['missed_or_late_pct']:.2f} %; rig on time: "
-                                                      f"{r['missed_or_late_rig_on_time_pct']} %)", file=sys.stderr,
-                                                      flush=True))
+                                                      f"{r['missed_or_late_rig_on_time_pct']} %; host steal "
+                                                      f"{r['host_steal_pct']} %)", file=sys.stderr, flush=True))
     elif args.what == "replay":
         from .bench_tick import bench_replay
 
@@ -681,6 +685,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "per setting (default 20000); middleware: puts and pings (default 3000)")
     b.add_argument("--wait", choices=["block", "spin"], default=None,
                    help="latency, realtime: the daemon's wait for samples (default: block)")
+    b.add_argument("--runs", type=int, default=1, metavar="N",
+                   help="realtime: runs per rate and schedule (default 1); with --versus, N of each, alternated")
+    b.add_argument("--versus", action="append", default=[], metavar="dotted.key=value",
+                   help="realtime: also run with this override (arm b), alternately with the runs without it (arm "
+                        "a); repeatable. The summary counts, per arm, the runs within ±2 %%, diverged and passing")
     b.add_argument("--catch-up", type=int, default=None, metavar="N",
                    help="realtime: answer up to N queued samples in order (loop.catch_up; default 1, the newest)")
     nice_opt(b)

@@ -135,6 +135,24 @@ def test_realtime_bench_judges_each_criterion():
         assert not judge({**good, **bad})["ok"], bad
 
 
+def test_realtime_bench_summary_counts_each_arm_and_rate_on_its_own():
+    from clients.bench_realtime import summarize
+
+    def row(arm, rate, dev, diverged=False, ok=False, missed=1.0, steal=0.5):
+        return {"arm": arm, "rate_hz": rate, "delay_samples": 3, "v_dev_after_50ms_pct": dev, "diverged": diverged,
+                "ok": ok, "missed_or_late_pct": missed, "host_steal_pct": steal}
+
+    rows = [row("a", 1000.0, 1.5), row("b", 1000.0, 1.9, missed=0.05, ok=True), row("a", 1000.0, 120.0, True),
+            row("b", 1000.0, 2.5), row("a", 2000.0, None, steal=None)]
+    got = {(g["arm"], g["rate_hz"]): g for g in summarize(rows)}
+    a = got[("a", 1000.0)]
+    assert (a["runs"], a["within_band"], a["diverged"], a["ok"]) == (2, 1, 1, 0)
+    assert a["v_dev_after_50ms_pct"] == [1.5, 120.0]
+    assert (got[("b", 1000.0)]["within_band"], got[("b", 1000.0)]["ok"]) == (1, 1)
+    assert got[("b", 1000.0)]["missed_or_late_pct"] == [0.05, 1.0]
+    assert got[("a", 2000.0)]["within_band"] == 0 and got[("a", 2000.0)]["host_steal_pct"] is None
+
+
 def test_the_controllers_share_of_the_misses_counts_only_samples_the_rig_handled_on_time():
     """A sample counts when the stand-in sent it on time and was on time at the period its command is for
     (sample j + d); of those, the ones not answered in time are the controller's and the transport's."""
