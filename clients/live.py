@@ -124,7 +124,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
     applies each command at the sampling instant after it arrives (one sample of delay while the round
     trip is shorter than a period); the controller compensates ``controller_delay`` samples (default 1).
     Realtime also runs controller and plant at nice ``nice`` (default REALTIME_NICE), above the load and the
-    background processes, the controller blocks on its samples (spinning took a core from the plant), and it
+    background processes, the controller blocks on its samples (spinning took a core from the plant), answers up
+    to ``controller_delay`` queued samples in order after a stall (loop.catch_up, unless ``loop`` sets it), and it
     falls back to the measured load power while the load has not been heard from.
     """
     tm = scn.timing
@@ -151,6 +152,9 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
         plant["disturbance"] = scn.disturbance.model_dump()
     if not lockstep:
         comp["nice"] = plant["nice"] = REALTIME_NICE if nice is None else nice
+        # after a stall, answer the queued samples whose commands can still act (up to the schedule's length) in
+        # order, not only the newest: with catch_up 1 the others were lost, most of the controller's misses (README)
+        comp["loop"].setdefault("catch_up", max(1, comp["delay_samples"]))
         # until the load's first message arrives (it follows the plant's clock, so a few ms after the first
         # sample) and whenever it goes quiet: regulate to the load power measured at the port, not hold du/dt = 0
         # (held, the LC pair rang open loop from i = 1 A and the law took over from 35 A, sometimes diverging)

@@ -170,6 +170,24 @@ def test_the_controllers_share_of_the_misses_counts_only_samples_the_rig_handled
     assert rig_on_time_misses(sent, answered, n, d) == r
 
 
+def test_realtime_stacks_answer_queued_samples_up_to_their_schedule():
+    """After a stall the realtime controller answers, in order, the queued samples whose commands can still act
+    (catch_up = the schedule's length), unless the loop settings say otherwise; lockstep keeps the default."""
+    from clients.live import configs_from_scenario
+    from schemas.scenario import load_scenario
+
+    scn = load_scenario(SCENARIOS / "paper-varying-load.toml")
+
+    def catch_up(lockstep=False, delay=8, loop=None):
+        comp, _p, _l = configs_from_scenario(scn, "tcp/127.0.0.1:1", lockstep=lockstep, rate_hz=1000.0,
+                                             controller_delay=delay, loop=loop)
+        return comp["loop"].get("catch_up")
+
+    assert catch_up() == 8 and catch_up(delay=3) == 3 and catch_up(delay=0) == 1
+    assert catch_up(loop={"catch_up": 2}) == 2
+    assert catch_up(lockstep=True) is None
+
+
 def test_realtime_stacks_turn_late_detection_on_unless_the_scenario_says_otherwise():
     """configs_from_scenario: realtime sets late_detect_V at 4 sqrt(2) sigma of the u noise; lockstep leaves it off;
     a value the scenario sets, 0 (off) included, is kept."""
