@@ -652,7 +652,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--rate", type=float, help=f"control/sample rate, Hz (realtime default {DEMO_REALTIME_HZ:g})")
     d.add_argument("--duration", type=float, help="seconds to run (default: the scenario's)")
     d.add_argument("--delay", type=int, help="realtime: samples between a measurement and the instant its command "
-                                             f"acts (plant schedule = controller prediction; default "
+                                             "acts (plant schedule = controller prediction; the controller answers "
+                                             "up to that many queued samples after a stall; default "
                                              f"{DEMO_REALTIME_DELAY}); realtime also sets "
                                              f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise")
     nice_opt(d)
