@@ -36,6 +36,27 @@ def judge(res: dict) -> dict:
     return row
 
 
+def schedule_samples(spec: str, rate_hz: float) -> int:
+    """A loop-delay schedule for one rate: "N" samples, or "Xms" milliseconds (rounded to samples, at least 1), so
+    that one list means the same time at every rate. Raises ScenarioError naming the bad entry."""
+    from schemas.scenario import ScenarioError
+
+    spec = spec.strip()
+    try:
+        if spec.endswith("ms"):
+            ms = float(spec[:-2])
+            if not ms > 0:
+                raise ValueError
+            return max(1, round(ms * 1e-3 * rate_hz))
+        n = int(spec)
+        if n < 0:
+            raise ValueError
+        return n
+    except ValueError:
+        raise ScenarioError(f"--delays: {spec!r} is neither a number of samples (0, 1, 2, ...) nor a time like "
+                            "8ms") from None
+
+
 def summarize(rows: list[dict]) -> list[dict]:
     """Per (arm, rate, schedule): how many runs, how many held v in the band (not diverged), diverged and met every
     criterion, and the ranges of deviation, missed + late and host steal."""
@@ -58,10 +79,11 @@ def summarize(rows: list[dict]) -> list[dict]:
     return out
 
 
-def bench_realtime(scn, rates: list[float], delays: list[int], duration_s: float, progress=None,
+def bench_realtime(scn, rates: list[float], delays: list[int | str], duration_s: float, progress=None,
                    loop: dict | None = None, nice: int | None = None, repeats: int = 1, scn_versus=None) -> dict:
     """loop: daemon loop settings over the realtime defaults (sample trigger, block wait), e.g. {"wait": "spin",
-    "catch_up": 4}; nice: controller and plant priority (default clients.live.REALTIME_NICE). repeats: runs per rate
+    "catch_up": 4}; delays: schedules in samples, or as "Xms" (schedule_samples); nice: controller and plant priority
+    (default clients.live.REALTIME_NICE). repeats: runs per rate
     and schedule; scn_versus: a second scenario (arm "b") run alternately with ``scn`` (arm "a"), so that both see
     the same minutes of the machine. The highest rate is the highest at which every run of arm a met all criteria."""
     from .live import run_live
@@ -70,7 +92,7 @@ def bench_realtime(scn, rates: list[float], delays: list[int], duration_s: float
     arms = [("a", scn)] + ([("b", scn_versus)] if scn_versus is not None else [])
     runs = []
     for rate in rates:
-        for d in delays:
+        for d in dict.fromkeys(schedule_samples(str(x), rate) for x in delays):  # samples; "8ms" per rate
             for j in range(repeats):
                 for arm, sc in arms:
                     with tempfile.TemporaryDirectory() as tmp, StealMeter() as steal:

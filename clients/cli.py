@@ -315,7 +315,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         scn = _load(path, [*DEMO_REALTIME_SETS, *(args.set or [])])
         versus = _load(path, [*DEMO_REALTIME_SETS, *(args.set or []), *args.versus]) if args.versus else None
         rates = [float(r) for r in (args.rates or "1000,2000,5000,10000").split(",")]
-        delays = [int(x) for x in (args.delays or "1,2,3").split(",")]
+        delays = (args.delays or "1,2,3,8ms").split(",")  # samples, or a time: 8ms is 8 samples at 1 kHz, 16 at 2
         loop = {k: v for k, v in (("wait", args.wait), ("catch_up", args.catch_up)) if v is not None}
         res = bench_realtime(scn, rates, delays, args.seconds or 2.0, loop=loop, nice=args.nice,
                              repeats=args.runs, scn_versus=versus,
@@ -675,7 +675,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--rates", metavar="HZ,HZ,...",
                    help="realtime: control rates to try (default 1000,2000,5000,10000), with "
                         f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise")
-    b.add_argument("--delays", metavar="N,N,...", help="realtime: loop-delay schedules to try, samples (default 1,2,3)")
+    b.add_argument("--delays", metavar="N,N,...",
+                   help="realtime: loop-delay schedules to try, in samples or as a time (8ms: 8 samples at 1 kHz, 16 "
+                        "at 2 kHz); the controller answers up to that many queued samples after a stall (default "
+                        "1,2,3,8ms)")
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
     b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
     b.add_argument("--seconds", type=float, default=None,

@@ -135,6 +135,19 @@ def test_realtime_bench_judges_each_criterion():
         assert not judge({**good, **bad})["ok"], bad
 
 
+def test_realtime_bench_schedules_are_samples_or_a_time_per_rate():
+    import pytest
+
+    from clients.bench_realtime import schedule_samples
+    from schemas.scenario import ScenarioError
+
+    assert [schedule_samples("8ms", r) for r in (1000.0, 2000.0, 5000.0)] == [8, 16, 40]
+    assert schedule_samples("3", 2000.0) == 3 and schedule_samples("0.1ms", 1000.0) == 1
+    for bad in ("x", "-1", "0ms", "ms"):
+        with pytest.raises(ScenarioError, match="--delays"):
+            schedule_samples(bad, 1000.0)
+
+
 def test_realtime_bench_summary_counts_each_arm_and_rate_on_its_own():
     from clients.bench_realtime import summarize
 
