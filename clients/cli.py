@@ -231,7 +231,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     mode += ", secure profile: router with authentication and access control" if args.secure else ""
     mode += ", mutual TLS" if args.tls else ""
     rate = args.rate or (scn.timing.control_rate_hz if mode != "realtime" else DEMO_REALTIME_HZ)
-    print(f"energyctl {__version__} demo ({mode}, {rate:g} Hz): {scn.description}", flush=True)
+    sched = f", {args.delay}-sample schedule" if args.realtime else ""  # the scenario's description is lockstep's
+    print(f"energyctl {__version__} demo ({mode}, {rate:g} Hz{sched}): {scn.description}", flush=True)
     t0 = time.perf_counter()
     if args.offline:
         res = run(scn)
