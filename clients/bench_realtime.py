@@ -83,9 +83,9 @@ def bench_realtime(scn, rates: list[float], delays: list[int | str], duration_s:
                    loop: dict | None = None, nice: int | None = None, repeats: int = 1, scn_versus=None) -> dict:
     """loop: daemon loop settings over the realtime defaults (sample trigger, block wait), e.g. {"wait": "spin",
     "catch_up": 4}; delays: schedules in samples, or as "Xms" (schedule_samples); nice: controller and plant priority
-    (default clients.live.REALTIME_NICE). repeats: runs per rate
-    and schedule; scn_versus: a second scenario (arm "b") run alternately with ``scn`` (arm "a"), so that both see
-    the same minutes of the machine. The highest rate is the highest at which every run of arm a met all criteria."""
+    (default clients.live.REALTIME_NICE); repeats: runs per rate and schedule; scn_versus: a second scenario (arm
+    "b") run alternately with ``scn`` (arm "a"), so that both see the same minutes of the machine. The highest rate
+    is the highest at which every run of arm a met all criteria."""
     from .live import run_live
     from .machine import StealMeter
 

@@ -698,7 +698,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="realtime: also run with this override (arm b), alternately with the runs without it (arm "
                         "a); repeatable. The summary counts, per arm, the runs within ±2 %%, diverged and passing")
     b.add_argument("--catch-up", type=int, default=None, metavar="N",
-                   help="realtime: answer up to N queued samples in order (loop.catch_up; default 1, the newest)")
+                   help="realtime: answer up to N queued samples in order (loop.catch_up; default: the schedule's "
+                        "length)")
     nice_opt(b)
     b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
     scen_opts(b)

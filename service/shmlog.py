@@ -28,8 +28,8 @@ from pathlib import Path
 from schemas.codec import VERSION, Codec
 
 SLOT = 128
-_HDR = struct.Struct("<QQQ")  # (unused), messages taken by the writer (statistics only), stop flag byte 16,
-#                               writer-failed flag byte 17
+_HDR = struct.Struct("<QQQ")  # (unused), messages taken by the writer (statistics only), flags (bytes 16, 17)
+_STOP, _FAILED = 16, 17  # header bytes: asked to finish; the writer failed (_kernel.c RING_FAILED)
 _SLOT_HDR = struct.Struct("<Bd")  # topic id, log time (s); after the one-byte slot flag
 _PAYLOAD = 1 + _SLOT_HDR.size
 
@@ -111,7 +111,7 @@ class RingRecorder:
         while time.monotonic() < deadline:
             if self._ready.wait(0.05):
                 return True
-            if not self._proc.is_alive() or self._buf[17]:
+            if not self._proc.is_alive() or self._buf[_FAILED]:
                 return False
         return False
 
@@ -131,7 +131,7 @@ class RingRecorder:
         """The writer process could not write (unwritable directory, disk full, died): logging is degraded."""
         if self._buf is None:
             return self.error is not None
-        if self._buf[17] or not self._proc.is_alive():
+        if self._buf[_FAILED] or not self._proc.is_alive():
             with self._error_lock:  # the status thread and the main thread both ask
                 if self.error is None:
                     try:  # the writer raises the flag, then sends its reason down a pipe: give it a moment
@@ -146,7 +146,7 @@ class RingRecorder:
         self._events.put((None, (name, data)))
 
     def offer(self, topic: str, t: float, values: tuple) -> None:
-        if self._buf[17]:  # the writer failed: stop filling a ring nobody empties (control goes on)
+        if self._buf[_FAILED]:  # the writer failed: stop filling a ring nobody empties (control goes on)
             return
         ent = self._codecs.get(topic)
         if ent is None:
@@ -167,7 +167,7 @@ class RingRecorder:
     def offer_group(self, g: int, t: float, *values) -> None:
         """One message of each topic of group g (the index into ``groups``) at log time t: their values one after
         the other, in the group's order."""
-        if self._buf[17]:
+        if self._buf[_FAILED]:
             return
         gid, st, members = self.groups[g]
         wi = self._wi
@@ -196,7 +196,7 @@ class RingRecorder:
     def close(self) -> None:
         if self.drops and self._events_topic:
             self._events.put((0.0, (0.0, 0, "recorder_drops", json.dumps(self.drops))))
-        self._buf[16] = 1  # stop
+        self._buf[_STOP] = 1  # stop
         self._proc.join(timeout=30)
         try:
             res = self._result.get(timeout=1)
@@ -344,7 +344,7 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
     try:
         f = open_part(path, 0)
     except Exception as e:  # noqa: BLE001 - unwritable directory, disk full: tell the parent, end
-        buf[17] = 1
+        buf[_FAILED] = 1
         result.put({"written": 0, "error": f"cannot write {path}: {type(e).__name__}: {e}", "paths": []})
         buf = None
         shm.close()
@@ -432,16 +432,16 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
                 continue
             written += drain()
             _IDX.pack_into(buf, 8, written)
-            if buf[16] or os.getppid() != parent:  # stopped, or the recorded process died: finish
+            if buf[_STOP] or os.getppid() != parent:  # stopped, or the recorded process died: finish
                 if not buf[_HDR.size + (r % slots) * SLOT]:
-                    if buf[16]:  # items put just before the stop may still be in the queue's pipe
+                    if buf[_STOP]:  # items put just before the stop may still be in the queue's pipe
                         written += drain(0.1)
                     break
                 continue
             time.sleep(IDLE_SLEEP_S)
     except Exception as e:  # noqa: BLE001 - report, keep what was written
         error = f"{type(e).__name__}: {e}"
-        buf[17] = 1
+        buf[_FAILED] = 1
     finally:
         try:
             if index is not None and error is None:
