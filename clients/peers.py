@@ -62,6 +62,42 @@ def _trace_recorder(cfg: PlantPeerConfig, t_meas: str, t_cmd: str, t_plant: str)
     return RingRecorder(out, topics, {"plant_config": {"json": cfg.model_dump_json()}})
 
 
+class StampedInbox:
+    """The realtime plant's command inbox: items (arrival monotonic ns, payload) from ``queued``, stamped by the
+    subscriber's callback as they arrive. A command counts for a period if it arrived by that period's instant,
+    whenever this process gets to read it: after a stall of the plant's own thread the queue holds commands that
+    arrived in time (a converter's modulator would have had them), and reading the clock instead charged the
+    controller with the rig's stall. The queue is in arrival order, so the first item stamped after the instant
+    is held back (``held``) and everything behind it waits with it for a later period."""
+
+    def __init__(self, q):
+        self.q = q
+        self.held = None
+
+    def offer(self, item, deadline_ns: int, arrive) -> bool:
+        """Hand ``item`` to ``arrive`` if it arrived by ``deadline_ns``; else hold it and return False."""
+        if item[0] > deadline_ns:
+            self.held = item
+            return False
+        arrive(item)
+        return True
+
+    def drain(self, deadline_ns: int, arrive) -> None:
+        """Hand over, in order, everything queued that arrived by ``deadline_ns`` (the held item first)."""
+        if self.held is not None:
+            item, self.held = self.held, None
+            if not self.offer(item, deadline_ns, arrive):
+                return
+        get = self.q.get_nowait
+        while True:
+            try:
+                item = get()
+            except Empty:
+                return
+            if not self.offer(item, deadline_ns, arrive):
+                return
+
+
 def rig_on_time_misses(sent_on_time, answered_in_time, samples: int, d: int) -> dict:
     """Of the samples j whose own sending and whose command's period j + d both found this stand-in on time
     (within half a period of the instant), how many were not answered in time: the misses that are the controller's
@@ -101,15 +137,17 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
         # the trace, PLANT_TRACE's columns row after row: 112 B a sample (a list of tuples took 496 B: 18 GB for an
         # hour at 10 kHz)
         rows = array("d")
-        # missed: samples whose command never arrived; late: arrived after its sampling instant (dropped);
-        # planned_periods: periods run on the plan the previous command carried (its du_dt_next), its successor
-        # missing; stale_periods: periods with neither (u held)
+        # missed: samples whose command never arrived (of those whose period is within the run: the commands answering
+        # the last d samples of a realtime run act after it, and the plant stops before the last of them arrive);
+        # late: arrived after its sampling instant (dropped); planned_periods: periods run on the plan the previous
+        # command carried (its du_dt_next), its successor missing; stale_periods: periods with neither (u held)
         # plant_late_samples: realtime samples this plant sent more than half a period after their instant
         counters = {"samples": 0, "commands": 0, "timeouts": 0, "missed": 0, "rejected": 0, "plant_late_samples": 0}
         send_ns = array("q", bytes(8 * N))
         # realtime: sample k sent within half a period of its instant (this stand-in's own punctuality), and the
         # command answering sample j taken at its period (in time): the controller's share of the misses
         sent_on_time, answered_in_time = bytearray(N), bytearray(N)
+        arrived = bytearray(N)  # a command answering sample j came (in time or not)
         lat_ns = array("q")
         delay: deque[float] = deque([0.0] * cfg.delay_samples)
         r_latest = 0.0
@@ -130,36 +168,46 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             if 0 <= c[0] < N and send_ns[c[0]]:
                 lat_ns.append(t_rx - send_ns[c[0]])
                 counters["commands"] += 1
+                arrived[c[0]] = 1
                 return c
             return None
 
+        inbox = StampedInbox(cmd_q)
+
+        def arrive(item) -> None:
+            c = take(item)
+            if c is not None:
+                sched.arrive(c[0], c[2], c[3])
+
         def poll_until(deadline_ns: int) -> None:
-            """Wait for the next sampling instant, collecting commands (timestamped on arrival)."""
+            """Wait for the next sampling instant, collecting the commands that arrived by it (StampedInbox: by
+            their arrival stamps, so that one this process reads late, after its own stall, still counts in time,
+            and one stamped after the instant waits for the next period)."""
+            inbox.drain(deadline_ns, arrive)
             while True:
                 left = deadline_ns - now_ns()
-                if left <= 0:
-                    return
+                if left <= 60_000 or inbox.held is not None:
+                    break
                 try:
-                    item = cmd_q.get(timeout=max(0.0, (left - 60_000) * 1e-9)) if left > 60_000 else cmd_q.get_nowait()
+                    item = cmd_q.get(timeout=(left - 60_000) * 1e-9)
                 except Empty:
-                    if left <= 60_000:
-                        while now_ns() < deadline_ns:  # spin the last 60 us
-                            pass
-                        return
                     continue
-                c = take(item)
-                if c is not None:
-                    sched.arrive(c[0], c[2], c[3])
+                inbox.offer(item, deadline_ns, arrive)
+            while now_ns() < deadline_ns:  # spin the last 60 us
+                pass
+            inbox.drain(deadline_ns, arrive)
 
         def await_answer(k: int) -> tuple | None:
             """Wait (up to lockstep_timeout_s) for the command answering sample k: (du/dt, planned du/dt), None if
             none came."""
             deadline = now_ns() + timeout_ns
             while True:
-                try:
-                    item = cmd_q.get(timeout=max(1e-6, (deadline - now_ns()) * 1e-9))
-                except Empty:
-                    return None
+                item, inbox.held = inbox.held, None
+                if item is None:
+                    try:
+                        item = cmd_q.get(timeout=max(1e-6, (deadline - now_ns()) * 1e-9))
+                    except Empty:
+                        return None
                 c = take(item)
                 if c is not None and c[0] == k:
                     return c[2], c[3]
@@ -236,7 +284,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
     diverged = bool(len(trace["v"]) and not (0.5 * cfg.v_ref_V < trace["v"].min()
                                               and trace["v"].max() < 2 * cfg.v_ref_V))
     metrics = compute_metrics(trace, cfg.v_ref_V, cfg.duration_s, diverged, 0)
-    counters["missed"] = counters["samples"] - counters["commands"]
+    in_run = max(0, counters["samples"] - sched.d)  # samples whose command's period is within the run
+    counters["missed"] = in_run - sum(arrived[:in_run])
     counters.update(sched.counts)
     if not lockstep:
         counters.update(rig_on_time_misses(sent_on_time, answered_in_time, counters["samples"], sched.d))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from conftest import SCENARIOS
 from mcap.reader import make_reader
 
@@ -181,6 +182,42 @@ def test_the_controllers_share_of_the_misses_counts_only_samples_the_rig_handled
     assert r == {"rig_on_time_samples": n - d - 2, "missed_or_late_rig_on_time": 1}
     answered[9] = 0  # its period (11) is after the run: not counted
     assert rig_on_time_misses(sent, answered, n, d) == r
+
+
+def test_the_plant_takes_commands_by_their_arrival_stamps_not_by_when_it_reads_them():
+    """After the plant's own stall its queue holds commands: those stamped by the instant count for that period
+    although read late; the first stamped after it is held, with all behind it, for the next period."""
+    from queue import Queue
+
+    from clients.peers import StampedInbox
+
+    q = Queue()
+    for t_rx, seq in ((90, 0), (100, 1), (101, 2), (150, 3)):
+        q.put((t_rx, seq))
+    inbox, got = StampedInbox(q), []
+    inbox.drain(100, lambda item: got.append(item[1]))  # read long after the instant 100
+    assert got == [0, 1] and inbox.held == (101, 2) and q.qsize() == 1
+    inbox.drain(140, lambda item: got.append(item[1]))  # the next period: the held one first, 150 still waits
+    assert got == [0, 1, 2] and inbox.held == (150, 3)
+    inbox.drain(160, lambda item: got.append(item[1]))
+    assert got == [0, 1, 2, 3] and inbox.held is None and q.empty()
+    assert inbox.offer((170, 4), 169, got.append) is False and inbox.held == (170, 4)
+
+
+def test_zenoh_send_queues_are_deeper_than_zenohs_default_unless_a_config_file_says():
+    """Two batches (Zenoh's default) dropped samples and commands after 1 ms stalls of a send thread here."""
+    from schemas.component import ZenohConfig
+    from service.bus import TX_QUEUE_BATCHES, zenoh_config
+
+    def depth(z):
+        return json.loads(zenoh_config(z).get_json("transport/link/tx/queue/size/data"))
+
+    assert TX_QUEUE_BATCHES > 2 and depth(ZenohConfig()) == TX_QUEUE_BATCHES
+    assert depth(ZenohConfig(tx_queue_batches=5)) == 5
+    cfg_file = SCENARIOS / "secure" / "router.json5"
+    assert depth(ZenohConfig(mode="router", config_file=str(cfg_file))) == 2  # the user's file, unchanged
+    with pytest.raises(ValueError, match="tx_queue_batches"):
+        ZenohConfig(tx_queue_batches=0)
 
 
 def test_realtime_stacks_answer_queued_samples_up_to_their_schedule():
