@@ -573,7 +573,7 @@ class Daemon:
             self.stats.missing_samples += seq - self._last_seq - 1
         self._last_seq = seq
         self.last_sample = v
-        stale_s = self.cfg.neighbour_stale_s
+        stale_s, horizon_s = self.cfg.neighbour_stale_s, self.cfg.neighbour_extrapolate_s
         stale_ns = int(stale_s * 1e9)
         P_in = P_in_dot = 0.0
         fresh = True
@@ -583,10 +583,11 @@ class Daemon:
             if nb.alive is not nb.alive_seen:
                 self._neighbour_event(nb, t)
             # P^{r,in} = -sum_j P_j^{r,out} at this sample's time: the neighbour's rate carries its last value
-            # forward (first-order hold) over the age of its message, t - t_j, when both are on one clock and it
-            # is younger than neighbour_stale_s; in lockstep the ages are 0 and this is the plain sum
+            # forward (first-order hold) over the age of its message, t - t_j, up to neighbour_extrapolate_s, when
+            # both are on one clock and it is younger than neighbour_stale_s; in lockstep the ages are 0 and this is
+            # the plain sum
             age = t - nb.t
-            P_in -= nb.P + nb.P_dot * age if 0.0 < age <= stale_s else nb.P
+            P_in -= nb.P + nb.P_dot * min(age, horizon_s) if 0.0 < age <= stale_s else nb.P
             P_in_dot -= nb.P_dot
         self.reference = "neighbours" if fresh else "none"
         local = self.cfg.local_reference_W
