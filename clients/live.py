@@ -17,7 +17,7 @@ from schemas.component import ComponentConfig, LoadPeerConfig, PlantPeerConfig, 
 from schemas.scenario import Scenario
 
 SHUTDOWN_GRACE_S = 5
-REALTIME_NICE = -10  # realtime stacks: controller and plant above everything else on the machine
+REALTIME_NICE = -10  # realtime stacks: controller, plant and load above everything else on the machine
 REALTIME_STEP_V = 20.0  # realtime stacks: the controller's slew limit, V per control period
 REALTIME_LATE_SIGMAS = 4.0  # realtime stacks: late-command detection at this many sigma of the measured u change
 REALTIME_LATE_MIN_V = 0.05  # ... and no finer than this (noise-free sensor)
@@ -123,8 +123,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
     delay and the controller compensates exactly that, as in ``energyctl sim``. Realtime: the plant
     applies each command at the sampling instant after it arrives (one sample of delay while the round
     trip is shorter than a period); the controller compensates ``controller_delay`` samples (default 1).
-    Realtime also runs controller and plant at nice ``nice`` (default REALTIME_NICE), above the load and the
-    background processes, the controller blocks on its samples (spinning took a core from the plant), answers up
+    Realtime also runs controller, plant and load at nice ``nice`` (default REALTIME_NICE), above the background
+    processes, the controller blocks on its samples (spinning took a core from the plant), answers up
     to ``controller_delay`` queued samples in order after a stall (loop.catch_up, unless ``loop`` sets it), and it
     falls back to the measured load power while the load has not been heard from.
     """
@@ -176,6 +176,10 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
             "base_dir": scn.base_dir}
     if out:
         load["log_dir"] = str(Path(out).parent)
+    if not lockstep:
+        # the load too: at 3 kHz, at nice 0 under the other two, its 200 Hz messages came in bursts after silences
+        # of up to 56 ms, and the reference carried from its last one drifted 440 W off (README)
+        load["nice"] = comp["nice"]
     # validate here so a bad scenario fails before any process starts
     config_from_dict(ComponentConfig, comp)
     config_from_dict(PlantPeerConfig, plant)

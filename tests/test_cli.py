@@ -238,6 +238,22 @@ def test_realtime_stacks_answer_queued_samples_up_to_their_schedule():
     assert catch_up(lockstep=True) is None
 
 
+def test_realtime_stacks_run_all_three_peers_at_one_raised_priority():
+    """Controller, plant and load at nice --nice (default REALTIME_NICE): the load at 0 under the other two was
+    silent for up to 56 ms at 3 kHz. Lockstep leaves every priority alone."""
+    from clients.live import REALTIME_NICE, configs_from_scenario
+    from schemas.scenario import load_scenario
+
+    scn = load_scenario(SCENARIOS / "paper-varying-load.toml")
+
+    def nices(**kw):
+        return [d.get("nice") for d in configs_from_scenario(scn, "tcp/127.0.0.1:1", rate_hz=1000.0, **kw)]
+
+    assert nices(lockstep=False) == [REALTIME_NICE] * 3 and REALTIME_NICE < 0
+    assert nices(lockstep=False, nice=-3) == [-3] * 3
+    assert nices(lockstep=True) == [None] * 3
+
+
 def test_realtime_stacks_turn_late_detection_on_unless_the_scenario_says_otherwise():
     """configs_from_scenario: realtime sets late_detect_V at 4 sqrt(2) sigma of the u noise; lockstep leaves it off;
     a value the scenario sets, 0 (off) included, is kept."""
