@@ -57,6 +57,22 @@ def schedule_samples(spec: str, rate_hz: float) -> int:
                             "8ms") from None
 
 
+def progress_line(r: dict) -> str:
+    """One run of the search as a line for stderr."""
+    head = f"  {r['arm'] + ' ' if 'arm' in r else ''}{r['rate_hz']:g} Hz, delay {r['delay_samples']}: "
+    if "error" in r:
+        return head + f"not run: {r['error']}"
+
+    def num(x, fmt):
+        return "-" if x is None else format(x, fmt)
+
+    return head + (f"{'OK' if r['ok'] else 'no'} (v dev after 50 ms {num(r['v_dev_after_50ms_pct'], '.2f')} %"
+                   f"{', diverged' if r['diverged'] else ''}, overruns {r['overrun_pct']:.2f} %, missed/late "
+                   f"{r['missed_or_late_pct']:.3f} %; of the rig's on-time samples "
+                   f"{num(r['missed_or_late_rig_on_time_pct'], '.3f')} %; host steal "
+                   f"{num(r.get('host_steal_pct'), '.2f')} %)")
+
+
 def summarize(rows: list[dict]) -> list[dict]:
     """Per (arm, rate, schedule): how many runs, how many held v in the band (not diverged), diverged and met every
     criterion, and the ranges of deviation, missed + late and host steal."""
@@ -70,10 +86,11 @@ def summarize(rows: list[dict]) -> list[dict]:
 
     out = []
     for (arm, rate, d), rs in groups.items():
-        dev_ok = [r for r in rs if not r["diverged"] and r["v_dev_after_50ms_pct"] is not None
+        dev_ok = [r for r in rs if not r.get("diverged") and r.get("v_dev_after_50ms_pct") is not None
                   and r["v_dev_after_50ms_pct"] <= BAND_PCT]
         out.append({"arm": arm, "rate_hz": rate, "delay_samples": d, "runs": len(rs), "within_band": len(dev_ok),
-                    "diverged": sum(1 for r in rs if r["diverged"]), "ok": sum(1 for r in rs if r["ok"]),
+                    "diverged": sum(1 for r in rs if r.get("diverged")), "ok": sum(1 for r in rs if r["ok"]),
+                    "errors": sum(1 for r in rs if "error" in r),
                     "v_dev_after_50ms_pct": span(rs, "v_dev_after_50ms_pct"),
                     "missed_or_late_pct": span(rs, "missed_or_late_pct"), "host_steal_pct": span(rs, "host_steal_pct")})
     return out
@@ -86,19 +103,35 @@ def bench_realtime(scn, rates: list[float], delays: list[int | str], duration_s:
     (default clients.live.REALTIME_NICE); repeats: runs per rate and schedule; scn_versus: a second scenario (arm
     "b") run alternately with ``scn`` (arm "a"), so that both see the same minutes of the machine. The highest rate
     is the highest at which every run of arm a met all criteria."""
-    from .live import run_live
+    from schemas.scenario import ScenarioError
+
+    from .live import configs_from_scenario, run_live
     from .machine import StealMeter
 
     arms = [("a", scn)] + ([("b", scn_versus)] if scn_versus is not None else [])
     runs = []
     for rate in rates:
         for d in dict.fromkeys(schedule_samples(str(x), rate) for x in delays):  # samples; "8ms" per rate
+            try:  # a rate and schedule the configs refuse is one row saying why, and the search goes on
+                for _arm, sc in arms:
+                    configs_from_scenario(sc, "tcp/127.0.0.1:1", False, rate, d, None, duration_s, loop, nice)
+            except ScenarioError as e:
+                row = {"rate_hz": rate, "delay_samples": d, "ok": False, "error": str(e)}
+                runs.append(row)
+                if progress:
+                    progress(row)
+                continue
             for j in range(repeats):
                 for arm, sc in arms:
                     with tempfile.TemporaryDirectory() as tmp, StealMeter() as steal:
-                        res = run_live(sc, lockstep=False, rate_hz=rate, out=None, duration_s=duration_s,
-                                       controller_delay=d, workdir=tmp, loop=loop, nice=nice)
-                    row = {"rate_hz": rate, "delay_samples": d, **judge(res), "host_steal_pct": steal.pct}
+                        try:
+                            res = run_live(sc, lockstep=False, rate_hz=rate, out=None, duration_s=duration_s,
+                                           controller_delay=d, workdir=tmp, loop=loop, nice=nice)
+                        except RuntimeError as e:  # a stack that failed (a peer did not start, the plant hung)
+                            res = {"error": str(e)}
+                    row = {"rate_hz": rate, "delay_samples": d, **(judge(res) if "error" not in res else
+                                                                    {"ok": False, "error": res["error"]}),
+                           "host_steal_pct": steal.pct}
                     if repeats > 1 or scn_versus is not None:
                         row.update(arm=arm, repeat=j)
                     runs.append(row)

@@ -311,7 +311,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         res = bench_tick(args.scenario or str(EMBEDDED / "demo.toml"), n=args.n or 20_000)
     elif args.what == "realtime":
-        from .bench_realtime import bench_realtime
+        from .bench_realtime import bench_realtime, progress_line
 
         # with demo --realtime's settings unless --set says otherwise
         path = args.scenario or str(EMBEDDED / "demo.toml")
@@ -322,13 +322,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         loop = {k: v for k, v in (("wait", args.wait), ("catch_up", args.catch_up)) if v is not None}
         res = bench_realtime(scn, rates, delays, args.seconds or 2.0, loop=loop, nice=args.nice,
                              repeats=args.runs, scn_versus=versus,
-                             progress=lambda r: print(f"  {r.get('arm', '')}{' ' if 'arm' in r else ''}"
-                                                      f"{r['rate_hz']:g} Hz, delay {r['delay_samples']}: "
-                                                      f"{'OK' if r['ok'] else 'no'} (dev {r['v_dev_after_50ms_pct']}, "
-                                                      f"overruns {r['overrun_pct']:.2f} %, missed/late "
-                                                      f"{r['missed_or_late_pct']:.2f} %; rig on time: "
-                                                      f"{r['missed_or_late_rig_on_time_pct']} %; host steal "
-                                                      f"{r['host_steal_pct']} %)", file=sys.stderr, flush=True))
+                             progress=lambda r: print(progress_line(r), file=sys.stderr, flush=True))
     elif args.what == "replay":
         from .bench_tick import bench_replay
 

@@ -105,7 +105,7 @@ class LoopConfig(Strict):
         default="block", description="sample trigger: block on the queue (frees the core), or spin on it (lower "
                                      "wake-up latency on an idle machine, but it costs a whole core, which the "
                                      "plant and Zenoh's threads then lack on a small one)")
-    catch_up: Annotated[int, Field(ge=1, le=64)] = Field(
+    catch_up: Annotated[int, Field(ge=1, le=256)] = Field(
         default=1, description="sample trigger: when several samples queued up, answer up to this many of the "
                                "newest, oldest first (each gets its command; older ones count as missing); 1 = only "
                                "the newest")
@@ -118,7 +118,7 @@ class ComponentConfig(Named):
     model: CircuitParams = CircuitParams()
     controller: ControllerConfig = ControllerConfig()
     loop: LoopConfig = LoopConfig()
-    delay_samples: Annotated[int, Field(ge=0, le=50)] = Field(
+    delay_samples: Annotated[int, Field(ge=0, le=200)] = Field(
         default=2, description="loop delay the core predicts over unless controller.delay_compensation_samples")
     neighbours: list[str] = Field(default=[], description="ids whose interaction variables form P^{r,in}")
     interaction_rate_hz: Annotated[float, Field(gt=0, le=20000)] = 1000.0
@@ -180,10 +180,10 @@ class PlantPeerConfig(Named):
     sensor: SensorConfig = SensorConfig()
     sample_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = 10000.0
     plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = 1e-5
-    delay_samples: Annotated[int, Field(ge=0, le=50)] = Field(
+    delay_samples: Annotated[int, Field(ge=0, le=200)] = Field(
         default=0, description="extra actuation delay the plant adds (lockstep: the whole loop delay)")
     pacing: Literal["lockstep", "realtime"] = "realtime"
-    realtime_apply_delay_samples: Annotated[int, Field(ge=1, le=50)] = Field(
+    realtime_apply_delay_samples: Annotated[int, Field(ge=1, le=200)] = Field(
         default=1, description="realtime: the command answering sample k acts from sampling instant k + this")
     lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
     duration_s: Annotated[float, Field(gt=0, le=86400)] = 2.0

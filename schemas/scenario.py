@@ -105,7 +105,7 @@ class SensorConfig(Strict):
 class TimingConfig(Strict):
     control_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = 10_000.0
     plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = 1e-5
-    delay_samples: Annotated[int, Field(ge=0, le=50)] = 0
+    delay_samples: Annotated[int, Field(ge=0, le=200)] = 0
     duration_s: Annotated[float, Field(gt=0, le=3600)] = 0.2
     command_loss: Annotated[float, Field(ge=0, lt=1)] = Field(
         default=0.0, description="probability that a command never acts (the source holds its voltage that "
@@ -164,7 +164,7 @@ class ControllerConfig(Strict):
     bm_K2_s: Finite = 1.8e-3
     bm_K3_S: Finite = 1.0
     bm_Pi_W: NonNeg = 2400.0
-    delay_compensation_samples: Annotated[int, Field(ge=0, le=50)] | None = Field(
+    delay_compensation_samples: Annotated[int, Field(ge=0, le=200)] | None = Field(
         default=None, description="samples of loop delay to predict over; None = the known loop delay"
     )
     deriv_tau_s: Pos = Field(default=5e-4, description="estimator derivative window time constant")

@@ -167,6 +167,21 @@ def test_realtime_bench_summary_counts_each_arm_and_rate_on_its_own():
     assert got[("a", 2000.0)]["within_band"] == 0 and got[("a", 2000.0)]["host_steal_pct"] is None
 
 
+def test_a_rate_the_configs_refuse_is_one_row_saying_why_and_the_search_goes_on():
+    """bench realtime: a schedule longer than the configs allow (here 300 samples) is reported, not a crash that
+    loses the rates already run; nothing is started for it."""
+    from clients.bench_realtime import bench_realtime, progress_line
+    from schemas.scenario import load_scenario
+
+    seen = []
+    res = bench_realtime(load_scenario(SCENARIOS / "paper-varying-load.toml"), [1000.0], ["300"], 0.1,
+                         progress=seen.append)
+    assert [r["delay_samples"] for r in res["runs"]] == [300] and res["highest_rate_hz"] is None
+    assert "delay_samples" in res["runs"][0]["error"] and not res["runs"][0]["ok"]
+    assert seen == res["runs"] and "not run: " in progress_line(seen[0])
+    assert res["summary"][0]["errors"] == 1 and res["summary"][0]["within_band"] == 0
+
+
 def test_the_controllers_share_of_the_misses_counts_only_samples_the_rig_handled_on_time():
     """A sample counts when the stand-in sent it on time and was on time at the period its command is for
     (sample j + d); of those, the ones not answered in time are the controller's and the transport's."""
