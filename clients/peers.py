@@ -155,6 +155,7 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
         lockstep = cfg.pacing == "lockstep"
         timeout_ns = int(cfg.lockstep_timeout_s * 1e9)
         period_ns = int(round(T * 1e9))
+        spin_ns = int(cfg.realtime_spin_us * 1e3)
         next_ns = now_ns() + period_ns
         sched = CommandSchedule(0 if lockstep else cfg.realtime_apply_delay_samples)
 
@@ -186,14 +187,14 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             inbox.drain(deadline_ns, arrive)
             while True:
                 left = deadline_ns - now_ns()
-                if left <= 60_000 or inbox.held is not None:
+                if left <= spin_ns or inbox.held is not None:
                     break
                 try:
-                    item = cmd_q.get(timeout=(left - 60_000) * 1e-9)
+                    item = cmd_q.get(timeout=(left - spin_ns) * 1e-9)
                 except Empty:
                     continue
                 inbox.offer(item, deadline_ns, arrive)
-            while now_ns() < deadline_ns:  # spin the last 60 us
+            while now_ns() < deadline_ns:  # spin the last realtime_spin_us
                 pass
             inbox.drain(deadline_ns, arrive)
 
