@@ -110,6 +110,10 @@ class TimingConfig(Strict):
     command_loss: Annotated[float, Field(ge=0, lt=1)] = Field(
         default=0.0, description="probability that a command never acts (the source holds its voltage that "
                                  "period), seeded; models late or lost commands")
+    command_outages: list[tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(gt=0)]]] = Field(
+        default=[], description="windows (start s, length s) in which no command arrives at the plant: a stall of "
+                                "the transport or of the controller longer than the loop delay, as the realtime "
+                                "stack sees on a shared machine")
 
 
 class LimitsConfig(Strict):

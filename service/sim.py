@@ -63,6 +63,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     delay: deque[tuple[float, float]] = deque([(0.0, 0.0)] * tm.delay_samples)
     sched = CommandSchedule(0)  # after the delay line, as the lockstep HIL plant: a lost command never arrives
     loss = tm.command_loss
+    outages = tm.command_outages
     loss_rng = np.random.default_rng([scn.seed, 0xC0DE])  # its own stream: sensor noise stays the same
 
     feas = FeasibilityMonitor(scn.feasibility.window_s)
@@ -100,7 +101,9 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
             cmd = delay.popleft()
         else:
             cmd = (out.du_dt, out.du_dt_next)
-        if not (loss and loss_rng.random() < loss):  # lost: its predecessor's plan acts (0 if that was lost too)
+        out_of_reach = any(a <= t < a + w for a, w in outages)  # the plant hears nothing in an outage
+        if not out_of_reach and not (loss and loss_rng.random() < loss):  # lost: its predecessor's plan acts (0 if
+            # that was lost too)
             sched.arrive(k, *cmd)
         r_apply = sched.take(k)[0]
         est = out.est
