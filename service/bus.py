@@ -49,7 +49,9 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
         cfg.insert_json5("connect/endpoints", json.dumps(z.connect))
     if not z.config_file or not z.multicast_scouting:
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(z.multicast_scouting))
-    q = z.tx_queue_batches if z.tx_queue_batches is not None else None if z.config_file else TX_QUEUE_BATCHES
+    q = z.tx_queue_batches
+    if q is None and not z.config_file:  # a user's own file keeps its value unless the field is set
+        q = TX_QUEUE_BATCHES
     if q is not None:
         cfg.insert_json5("transport/link/tx/queue/size/data", json.dumps(q))
     if z.user is not None:

@@ -101,9 +101,9 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
             cmd = delay.popleft()
         else:
             cmd = (out.du_dt, out.du_dt_next)
-        out_of_reach = any(a <= t < a + w for a, w in outages)  # the plant hears nothing in an outage
-        if not out_of_reach and not (loss and loss_rng.random() < loss):  # lost: its predecessor's plan acts (0 if
-            # that was lost too)
+        # lost, or in an outage (the plant hears nothing): its predecessor's plan acts (0 if that was lost too)
+        out_of_reach = bool(outages) and any(a <= t < a + w for a, w in outages)
+        if not out_of_reach and not (loss and loss_rng.random() < loss):
             sched.arrive(k, *cmd)
         r_apply = sched.take(k)[0]
         est = out.est
