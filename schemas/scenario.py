@@ -108,8 +108,15 @@ class TimingConfig(Strict):
     delay_samples: Annotated[int, Field(ge=0, le=200)] = 0
     duration_s: Annotated[float, Field(gt=0, le=3600)] = 0.2
     command_loss: Annotated[float, Field(ge=0, lt=1)] = Field(
-        default=0.0, description="probability that a command never acts (the source holds its voltage that "
-                                 "period), seeded; models late or lost commands")
+        default=0.0, description="probability that a command never reaches the plant, seeded: its predecessor's "
+                                 "plan acts in its period (the source holds its voltage if that one was lost too)")
+    command_late: Annotated[float, Field(ge=0, le=1)] = Field(
+        default=0.0, description="probability that a command arrives one period late, seeded: too late for its own "
+                                 "period (its predecessor's plan acts there), in time for its own plan to serve the "
+                                 "next one if that command is missing; jitter around the schedule's deadline")
+    command_late_windows: list[tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(gt=0)]]] = Field(
+        default=[], description="windows (start s, length s) in which every command arrives one period late: the "
+                                "transport's delay a period longer than the schedule for a while")
     command_outages: list[tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(gt=0)]]] = Field(
         default=[], description="windows (start s, length s) in which no command arrives at the plant: a stall of "
                                 "the transport or of the controller longer than the loop delay, as the realtime "

@@ -65,6 +65,8 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     loss = tm.command_loss
     outages = tm.command_outages
     loss_rng = np.random.default_rng([scn.seed, 0xC0DE])  # its own stream: sensor noise stays the same
+    late_p, late_windows = tm.command_late, tm.command_late_windows
+    late_rng = np.random.default_rng([scn.seed, 0x1A7E])  # and its own: the losses stay the same
 
     feas = FeasibilityMonitor(scn.feasibility.window_s)
     tp = tau_prime(scn.model.L_H, scn.model.R_ohm, effective_gain(scn.controller, scn.model))
@@ -103,9 +105,16 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
             cmd = (out.du_dt, out.du_dt_next)
         # lost, or in an outage (the plant hears nothing): its predecessor's plan acts (0 if that was lost too)
         out_of_reach = bool(outages) and any(a <= t < a + w for a, w in outages)
+        late = False
         if not out_of_reach and not (loss and loss_rng.random() < loss):
-            sched.arrive(k, *cmd)
+            # one period late: after its period was taken (its predecessor's plan acted), before the next
+            late = bool(late_p and late_rng.random() < late_p) or \
+                bool(late_windows) and any(a <= t < a + w for a, w in late_windows)
+            if not late:
+                sched.arrive(k, *cmd)
         r_apply = sched.take(k)[0]
+        if late:
+            sched.arrive(k, *cmd)
         est = out.est
         if t >= t_warm:
             feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)

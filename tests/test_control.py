@@ -305,7 +305,7 @@ def test_the_prediction_follows_the_plant_across_skipped_samples():
     assert di_tick > 10 * di
 
 
-def _late_burst_run(late_detect_V: float) -> tuple[float, int]:
+def _late_burst_run(late_detect_V: float, observer_gain: float = 0.0) -> tuple[float, int]:
     """The embedded demo at 1 kHz, 2 samples of delay, K = 1500/s, 20 V per period slew: a burst of 10 commands
     (and their plans) that all arrive too late, as the realtime stack saw on this VM. Returns (max |v - 80| / 80
     in % after the burst, or inf if v left 40..160 V; ticks the core flagged late)."""
@@ -318,7 +318,8 @@ def _late_burst_run(late_detect_V: float) -> tuple[float, int]:
 
     scn = load_scenario(Path(__file__).parents[1] / "clients" / "embedded" / "demo.toml",
                         ["timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5", "controller.K_per_s=1500.0",
-                         "controller.limits.du_dt_max_V_per_s=20000.0", f"controller.late_detect_V={late_detect_V}"])
+                         "controller.limits.du_dt_max_V_per_s=20000.0", f"controller.late_detect_V={late_detect_V}",
+                         f"controller.observer_gain={observer_gain}"])
     T, d = 1e-3, 2
     load = Profile(scn.load, scn.base_dir)
     plant = RLCPlant(scn.plant, load, None)
@@ -344,14 +345,18 @@ def _late_burst_run(late_detect_V: float) -> tuple[float, int]:
 
 
 def test_a_burst_of_late_commands_is_detected_from_the_measured_u():
-    """Without detection the prediction keeps counting on commands that never acted, each new command corrects
-    the last one's imagined effect, and v diverges; with it (u's change over a period off by more than 0.3 V
-    from the command meant for it) the in-flight commands are taken as not acting and v stays near 80 V."""
+    """Predicting from the raw sample, without detection the prediction keeps counting on commands that never
+    acted, each new command corrects the last one's imagined effect, and v diverges; with it (u's change over a
+    period off by more than 0.3 V from the command meant for it) the in-flight commands are taken as not acting and
+    v stays near 80 V. With the observer (g = 0.15, the realtime stacks' setting) the same burst passes without
+    detection: why the realtime stacks no longer turn it on."""
     dev_off, flagged_off = _late_burst_run(0.0)
     dev_on, flagged_on = _late_burst_run(0.3)
     assert flagged_off == 0 and dev_off == float("inf")
     assert 3 <= flagged_on <= 30
     assert dev_on < 5.0
+    dev_obs, flagged_obs = _late_burst_run(0.0, observer_gain=0.15)
+    assert flagged_obs == 0 and dev_obs < 2.0
 
 
 # ---------------------------------------------------------------- the observer for the delay prediction's start
@@ -409,6 +414,29 @@ def test_observer_gain_one_is_the_raw_sample():
     raw = run(scn, impl="python")
     one = run(_demo(["timing.duration_s=0.3", "controller.observer_gain=1.0"]), impl="python")
     assert np.allclose(one.trace["du_dt"], raw.trace["du_dt"], rtol=1e-9, atol=1e-6)
+
+
+def test_commands_one_period_late_run_on_their_predecessors_plans_and_late_detection_turns_that_into_divergence():
+    """timing.command_late / command_late_windows: a late command misses its own period, where its predecessor's
+    plan acts instead. With the realtime stack's controller (1 kHz, 8-sample schedule, K = 1500/s, observer 0.15,
+    20 V per period) that costs little with the late detection off; with it on (0.28 V, its former realtime value)
+    the plans' effect on u reads as commands not acting, the in-flight ones are predicted as 0, and the loop
+    leaves the band or diverges. Why the realtime stacks leave it off (README)."""
+    base = ["timing.control_rate_hz=1000", "timing.delay_samples=8", "controller.K_per_s=1500",
+            "timing.plant_step_s=5e-5", "controller.observer_gain=0.15", "timing.duration_s=1.0",
+            "controller.limits.du_dt_max_V_per_s=20000"]
+    d = 8
+    r = run(_demo([*base, "timing.command_late_windows=[[0.5, 0.049]]"]))
+    t, applied, plan = r.trace["t"], r.trace["du_dt_applied"], r.trace["du_dt_next"]
+    k = np.nonzero((t >= 0.501) & (t < 0.549))[0]
+    assert np.array_equal(applied[k], plan[k - 1 - d])  # each period ran on the plan sent one sample earlier
+    assert not np.array_equal(applied[k], r.trace["du_dt"][k - d])
+    assert not r.metrics["diverged"] and r.metrics["hold_max_dev_pct"] < 5.0
+    on = run(_demo([*base, "timing.command_late_windows=[[0.5, 0.049]]", "controller.late_detect_V=0.28"]))
+    assert on.metrics["diverged"]
+    off = run(_demo([*base, "timing.command_late=0.1"]))
+    on = run(_demo([*base, "timing.command_late=0.1", "controller.late_detect_V=0.28"]))
+    assert off.metrics["hold_max_dev_pct"] < 2.0 < on.metrics["hold_max_dev_pct"]
 
 
 def test_a_command_outage_holds_the_source_and_regulation_survives_it():
