@@ -161,6 +161,11 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
         # was answered with +-50 kV/s and diverged; 20 V per period regulates as before offline (README)
         lim = comp["controller"]["limits"]
         lim["du_dt_max_V_per_s"] = min(lim["du_dt_max_V_per_s"], REALTIME_STEP_V * rate)
+        # the load power for the prediction as the load announces it (200 Hz, carried to the sample's time), not
+        # v i_load measured: that current's noise was most of the commands' noise, and made every late or lost
+        # command cost a few volts over an 8 ms schedule (README)
+        if "load_power" not in scn.controller.model_fields_set:
+            comp["controller"]["load_power"] = "reference"
         # no late-command detection (late_detect_V stays as the scenario says, default 0 = off): with plans and the
         # observer it did harm offline under every pattern of late and lost commands tried, up to divergence, and in
         # 28 alternated realtime pairs it made no difference (README, "Late-command detection")

@@ -189,6 +189,12 @@ class ControllerConfig(Strict):
                                  "arriving in time, and the prediction takes the ones still in flight as not acting "
                                  "(du/dt = 0) until u follows the commands again; 0 = off. Set it above the u "
                                  "sensor's noise (several times sqrt(2) sigma)")
+    load_power: Literal["measured", "reference"] = Field(
+        default="measured", description="the load power the delay prediction, the law and the observer carry the "
+                                        "state with (W): 'measured' v i_load of the sample; 'reference' -P^{r,in}, "
+                                        "the power the neighbours announce (paper Eqn PsiMap; the local fallback "
+                                        "when they are silent). The measured i_load's noise (0.05 A: 4 W at 80 V) "
+                                        "was most of the commands' noise, and what made a lost or late command cost")
     observer_gain: Annotated[float, Field(ge=0, le=1)] = Field(
         default=0.0, description="where the delay prediction starts: 0 = the raw sample (i, v, u); g in (0, 1] = a "
                                  "model-based estimate x = x- + g (y - x-), x- the previous estimate carried over "

@@ -41,6 +41,7 @@ typedef struct {
     int kind, continuous, cancel_Et, plan;
     double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC, late_tol;
     double obs; /* observer_gain (0: the prediction starts from the raw sample) */
+    int load_ref; /* load_power: 1 = -P_in (the neighbours' announced power), 0 = v i_2 measured */
     /* the observer: seq of its last estimate, the estimate (i, v, u) and the load power measured with it */
     double x_seq, x_hat[3], x_P;
     /* late-command detection: the last step's seq and measured u, and the verdict */
@@ -382,7 +383,7 @@ static double law(const Kernel *k, double i_p, double v_p, double u_p, double P_
 /* ControlCore._observe: the state the delay prediction starts from, x = x^- + g (y - x^-), x^- the previous
    estimate carried over one period at the rate the plant applied; from the sample after a gap. Before this step's
    command is remembered. */
-static void observe(Kernel *k, double seq, double si_, double sv, double su, double si2, int late, double *pi,
+static void observe(Kernel *k, double seq, double si_, double sv, double su, double P_load, int late, double *pi,
                     double *pv, double *pu)
 {
     double i, v, u;
@@ -399,7 +400,7 @@ static void observe(Kernel *k, double seq, double si_, double sv, double su, dou
     }
     k->x_seq = seq;
     k->x_hat[0] = i; k->x_hat[1] = v; k->x_hat[2] = u;
-    k->x_P = sv * si2;
+    k->x_P = P_load;
     *pi = i; *pv = v; *pu = u;
 }
 
@@ -439,11 +440,11 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
     }
 
     /* state at the start of the period this command will act on */
-    double P_meas = sv * si2;
+    double P_meas = k->load_ref ? -P_in : sv * si2;  /* ControlCore.step: controller.load_power */
     double Pdot = -P_in_dot;
     double i_p = si_, v_p = sv, u_p = su;
     if (k->obs > 0.0)
-        observe(k, seq, si_, sv, su, si2, late, &i_p, &v_p, &u_p);
+        observe(k, seq, si_, sv, su, P_meas, late, &i_p, &v_p, &u_p);
     for (int j = 0; j < d; j++) {
         double r_j = late ? 0.0 : issued(k, seq - d + j);
         predict_in_range(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C,
@@ -513,11 +514,11 @@ static void Kernel_dealloc(Kernel *self)
 
 static PyObject *Kernel_set_params(Kernel *self, PyObject *args)
 {
-    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)ddd", &self->kind, &self->continuous, &self->cancel_Et,
+    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)dddi", &self->kind, &self->continuous, &self->cancel_Et,
                           &self->plan,
                           &self->v_ref, &self->K, &self->alpha, &self->phi, &self->decay, &self->lK1, &self->lK2,
                           &self->bK1, &self->bK2, &self->bK3, &self->bPi, &self->u_min, &self->u_max, &self->r_max,
-                          &self->i_floor, &self->keC, &self->late_tol, &self->obs))
+                          &self->i_floor, &self->keC, &self->late_tol, &self->obs, &self->load_ref))
         return NULL;
     Py_RETURN_NONE;
 }

@@ -229,6 +229,7 @@ class CoreBase:
         self._plan = c.plan_next_period
         self._late_tol = c.late_detect_V
         self._obs = c.observer_gain
+        self._load_ref = c.load_power == "reference"
 
     def run_batch(self, rows, du_out, next_out=None) -> None:
         """Step n rows (n x w floats, w >= 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped, then anything;
@@ -323,12 +324,12 @@ class ControlCore(CoreBase):
         """Sample seq was answered with du/dt = 0 and no plan, without a step (inactive, no reference)."""
         self.pending[seq % (self.d + 1)] = (seq, 0.0, 0.0)
 
-    def _observe(self, s: Sample, late: bool) -> tuple[float, float, float]:
+    def _observe(self, s: Sample, late: bool, P_load: float) -> tuple[float, float, float]:
         """The state (i A, v V, u V) at sample s for the delay prediction to start from:
         x_k = x_k^- + g (y_k - x_k^-), x_k^- = the previous estimate carried over one period by the circuit model
-        (predict_in_range, load power of the previous sample) at the rate the plant applied there (issued(k - 1 - d);
-        0 when commands are late). Starts again from the sample after a gap (first step, held or missing samples).
-        Call before this step's command is stored."""
+        (predict_in_range, load power P_load of the previous sample, W) at the rate the plant applied there
+        (issued(k - 1 - d); 0 when commands are late). Starts again from the sample after a gap (first step, held or
+        missing samples). Call before this step's command is stored."""
         if self._x_seq != s.seq - 1:
             x = (s.i, s.v, s.u)
         else:
@@ -338,7 +339,7 @@ class ControlCore(CoreBase):
                                        u_min, u_max)
             g = self._obs
             x = (i + g * (s.i - i), v + g * (s.v - v), u + g * (s.u - u))
-        self._x_seq, self._x_hat, self._x_P = s.seq, x, s.v * s.i_load
+        self._x_seq, self._x_hat, self._x_P = s.seq, x, P_load
         return x
 
     def applied_rate(self, seq: int | None = None) -> float:
@@ -369,9 +370,10 @@ class ControlCore(CoreBase):
             out.z_out0, out.z_out1 = self.estimator.z_out
 
         # --- state at the start of the period this command will act on (delay prediction) ---
-        P_meas = s.v * s.i_load
+        # the load power (W): measured at the port, or as the neighbours announce it (controller.load_power)
+        P_meas = -inc.P_r_in if self._load_ref else s.v * s.i_load
         Pdot = -inc.P_r_in_dot  # the load's rate as announced by the neighbour
-        i_p, v_p, u_p = self._observe(s, late) if self._obs > 0.0 else (s.i, s.v, s.u)
+        i_p, v_p, u_p = self._observe(s, late, P_meas) if self._obs > 0.0 else (s.i, s.v, s.u)
         n = self.n_pred
         for k in range(d):
             r_k = 0.0 if late else self.issued(seq - d + k)

@@ -130,7 +130,7 @@ class CompiledCore(CoreBase):
         v_ref, K, cancel_Et, alpha, phi, decay = self._gains
         self._k.set_params(KIND_CODE[self._kind], int(self._continuous), int(bool(cancel_Et)), int(self._plan),
                            (v_ref, K, alpha, phi, decay), self._lqr, self._bm, self._lim, self._keC, self._late_tol,
-                           self._obs)
+                           self._obs, int(self._load_ref))
 
     def reset(self) -> None:
         self._k.reset()

@@ -287,6 +287,23 @@ def test_realtime_stacks_leave_late_detection_to_the_scenario():
     assert tol(["controller.late_detect_V=0.5"], lockstep=True) == 0.5
 
 
+def test_realtime_stacks_take_the_load_power_the_neighbour_announces_unless_the_scenario_says_otherwise():
+    """configs_from_scenario: realtime sets controller.load_power = "reference"; lockstep keeps the scenario's
+    (default "measured", so lockstep still equals sim); a value the scenario sets is kept."""
+    from clients.live import configs_from_scenario
+    from schemas.scenario import load_scenario
+
+    path = SCENARIOS / "paper-varying-load.toml"
+
+    def power(overrides, lockstep=False):
+        comp, _p, _l = configs_from_scenario(load_scenario(path, overrides), "tcp/127.0.0.1:1", lockstep=lockstep,
+                                             rate_hz=1000.0)
+        return comp["controller"]["load_power"]
+
+    assert power([]) == "reference" and power([], lockstep=True) == "measured"
+    assert power(['controller.load_power="measured"']) == "measured"
+
+
 def test_bench_middleware_measures_each_fact_of_the_design_notes():
     """A short run: every part reports, and the numbers hang together (one way is part of the round trip; a
     1 kHz loop polling a ring sees the 1 kHz stream in most periods; a killed token holder is seen gone)."""

@@ -43,6 +43,10 @@ CASES = [
     ("fblc", "exact", 2, ["controller.observer_gain=0.3", "controller.late_detect_V=0.01", "timing.command_loss=0.1"]),
     ("fblc", "exact", 0, ["controller.observer_gain=0.5"]),
     ("lqr", "exact", 3, ["controller.observer_gain=0.2"]),
+    # the load power as the neighbours announce it
+    ("fblc", "exact", 3, ['controller.load_power="reference"', "controller.observer_gain=0.15",
+                          "timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5", "timing.command_late=0.1"]),
+    ("bm", "exact", 2, ['controller.load_power="reference"']),
 ]
 
 
