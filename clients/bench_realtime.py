@@ -97,11 +97,13 @@ def summarize(rows: list[dict]) -> list[dict]:
 
 
 def bench_realtime(scn, rates: list[float], delays: list[int | str], duration_s: float, progress=None,
-                   loop: dict | None = None, nice: int | None = None, repeats: int = 1, scn_versus=None) -> dict:
+                   loop: dict | None = None, nice: int | None = None, repeats: int = 1, scn_versus=None,
+                   cpus: dict[str, list[int]] | None = None) -> dict:
     """loop: daemon loop settings over the realtime defaults (sample trigger, block wait), e.g. {"wait": "spin",
     "catch_up": 4}; delays: schedules in samples, or as "Xms" (schedule_samples); nice: controller and plant priority
     (default clients.live.REALTIME_NICE); repeats: runs per rate and schedule; scn_versus: a second scenario (arm
-    "b") run alternately with ``scn`` (arm "a"), so that both see the same minutes of the machine. The highest rate
+    "b") run alternately with ``scn`` (arm "a"), so that both see the same minutes of the machine; cpus: the CPUs per
+    process (clients.live.configs_from_scenario). The highest rate
     is the highest at which every run of arm a met all criteria."""
     from schemas.scenario import ScenarioError
 
@@ -114,7 +116,7 @@ def bench_realtime(scn, rates: list[float], delays: list[int | str], duration_s:
         for d in dict.fromkeys(schedule_samples(str(x), rate) for x in delays):  # samples; "8ms" per rate
             try:  # a rate and schedule the configs refuse is one row saying why, and the search goes on
                 for _arm, sc in arms:
-                    configs_from_scenario(sc, "tcp/127.0.0.1:1", False, rate, d, None, duration_s, loop, nice)
+                    configs_from_scenario(sc, "tcp/127.0.0.1:1", False, rate, d, None, duration_s, loop, nice, cpus)
             except ScenarioError as e:
                 row = {"rate_hz": rate, "delay_samples": d, "ok": False, "error": str(e)}
                 runs.append(row)
@@ -126,7 +128,7 @@ def bench_realtime(scn, rates: list[float], delays: list[int | str], duration_s:
                     with tempfile.TemporaryDirectory() as tmp, StealMeter() as steal:
                         try:
                             res = run_live(sc, lockstep=False, rate_hz=rate, out=None, duration_s=duration_s,
-                                           controller_delay=d, workdir=tmp, loop=loop, nice=nice)
+                                           controller_delay=d, workdir=tmp, loop=loop, nice=nice, cpus=cpus)
                         except RuntimeError as e:  # a stack that failed (a peer did not start, the plant hung)
                             res = {"error": str(e)}
                     row = {"rate_hz": rate, "delay_samples": d, **(judge(res) if "error" not in res else
@@ -142,5 +144,6 @@ def bench_realtime(scn, rates: list[float], delays: list[int | str], duration_s:
     best_rate = max((g["rate_hz"] for g in passed), default=None)
     best = next((r for r in runs if r["rate_hz"] == best_rate and r.get("arm", "a") == "a" and r["ok"]), None)
     return {"bench": "realtime", "scenario": scn.name, "duration_s": duration_s, "loop": loop or {}, "nice": nice,
+            "cpus": cpus,
             "criteria": {"v_band_pct": BAND_PCT, "overrun_pct_below": LIMIT_PCT, "missed_or_late_pct_below": LIMIT_PCT},
             "runs": runs, "summary": summary, "highest_rate_hz": best_rate, "at_best": best}

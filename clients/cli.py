@@ -245,7 +245,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
         logs.mkdir(parents=True, exist_ok=True)
         res = run_live(scn, not args.realtime, rate, str(out), args.duration, args.delay, secure=args.secure,
-                       tls=args.tls, nice=args.nice)
+                       tls=args.tls, nice=args.nice, cpus=args.cpus)
         m = res["metrics"]
         print(metrics_table([([scn.name, f"{scn.controller.kind} over Zenoh"], m)], ["scenario", "controller"]))
         d = res.get("daemon", {}).get("loop", {})
@@ -321,7 +321,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         delays = (args.delays or "1,2,3,8ms").split(",")  # samples, or a time: 8ms is 8 samples at 1 kHz, 16 at 2
         loop = {k: v for k, v in (("wait", args.wait), ("catch_up", args.catch_up)) if v is not None}
         res = bench_realtime(scn, rates, delays, args.seconds or 2.0, loop=loop, nice=args.nice,
-                             repeats=args.runs, scn_versus=versus,
+                             repeats=args.runs, scn_versus=versus, cpus=args.cpus,
                              progress=lambda r: print(progress_line(r), file=sys.stderr, flush=True))
     elif args.what == "replay":
         from .bench_tick import bench_replay
@@ -572,6 +572,20 @@ def cmd_schema(args: argparse.Namespace) -> int:
     return 0
 
 
+def role_cpus(text: str) -> dict[str, list[int]]:
+    """--cpus: "controller=1,plant=0+1" -> {"controller": [1], "plant": [0, 1]} (argparse type)."""
+    out: dict[str, list[int]] = {}
+    for part in filter(None, text.split(",")):
+        role, _, cpus = part.partition("=")
+        if role not in ("controller", "plant", "load") or not cpus:
+            raise argparse.ArgumentTypeError(f"{part!r}: expected controller|plant|load=CPU[+CPU]")
+        try:
+            out[role] = [int(c) for c in cpus.split("+")]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{part!r}: CPUs are numbers, joined by +") from None
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="energyctl",
@@ -585,6 +599,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="realtime: nice value of controller and plant (default -10: above the load and the "
                              "recorder and forecast processes; 0 = no raise); recorder: of the paced loop (default: "
                              "as started). Raising needs CAP_SYS_NICE")
+
+    def cpus_opt(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--cpus", type=role_cpus, default=None, metavar="ROLE=CPU[+CPU],...",
+                        help="the CPUs controller, plant and load may each run on, e.g. controller=1,plant=0,load=0 "
+                             "(their `cpus` config; default any)")
 
     def scen_opts(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--set", action="append", metavar="dotted.key=value",
@@ -654,6 +673,7 @@ def build_parser() -> argparse.ArgumentParser:
                                              f"{DEMO_REALTIME_DELAY}); realtime also sets "
                                              f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise")
     nice_opt(d)
+    cpus_opt(d)
     scen_opts(d)
     d.set_defaults(func=cmd_demo)
 
@@ -695,6 +715,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="realtime: answer up to N queued samples in order (loop.catch_up; default: the schedule's "
                         "length)")
     nice_opt(b)
+    cpus_opt(b)
     b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
     scen_opts(b)
     b.add_argument("--writer-cpus", metavar="N,N,...",

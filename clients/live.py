@@ -36,11 +36,11 @@ def install_stop_handlers(stop: threading.Event) -> None:
 def start_process(cfg, command: str) -> threading.Event:
     """First thing in energyctl run/plant/load: the stop event, its signal handlers, and the configured priority
     and timer slack (before any thread exists, so that Zenoh's threads and spawned processes inherit them)."""
-    from service.priority import set_nice, set_timer_slack
+    from service.priority import set_cpus, set_nice, set_timer_slack
 
     stop = threading.Event()
     install_stop_handlers(stop)
-    for refused in (set_nice(cfg.nice), set_timer_slack(cfg.timer_slack_ns)):
+    for refused in (set_cpus(cfg.cpus), set_nice(cfg.nice), set_timer_slack(cfg.timer_slack_ns)):
         if refused:
             print(f"energyctl {command}: {refused}", file=sys.stderr, flush=True)
     return stop
@@ -112,7 +112,8 @@ def run_load_cmd(cfg: LoadPeerConfig) -> int:
 def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz: float | None = None,
                           controller_delay: int | None = None, out: str | None = None,
                           duration_s: float | None = None, loop: dict | None = None,
-                          nice: int | None = None) -> tuple[dict, dict, dict]:
+                          nice: int | None = None, cpus: dict[str, list[int]] | None = None
+                          ) -> tuple[dict, dict, dict]:
     """Component, plant and load configs (as dicts) for one scenario on one loopback endpoint.
 
     The controller listens; plant and load connect to it. The controller ticks on each measurement (the
@@ -123,7 +124,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
     Realtime also runs controller, plant and load at nice ``nice`` (default REALTIME_NICE), above the background
     processes, the controller blocks on its samples (spinning took a core from the plant), answers up
     to ``controller_delay`` queued samples in order after a stall (loop.catch_up, unless ``loop`` sets it), and it
-    falls back to the measured load power while the load has not been heard from.
+    falls back to the measured load power while the load has not been heard from. ``cpus``: the CPUs each of
+    "controller", "plant" and "load" may run on (their ``cpus`` config; default any).
     """
     tm = scn.timing
     rate = rate_hz or tm.control_rate_hz
@@ -179,6 +181,9 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
         # the load too: at 3 kHz, at nice 0 under the other two, its 200 Hz messages came in bursts after silences
         # of up to 56 ms, and the reference carried from its last one drifted 440 W off (README)
         load["nice"] = comp["nice"]
+    for role, d in (("controller", comp), ("plant", plant), ("load", load)):
+        if cpus and role in cpus:
+            d["cpus"] = cpus[role]
     # validate here so a bad scenario fails before any process starts
     config_from_dict(ComponentConfig, comp)
     config_from_dict(PlantPeerConfig, plant)
@@ -283,7 +288,8 @@ def _exit_on_term(signum, frame):
 
 def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | None, duration_s: float | None,
              controller_delay: int | None = None, workdir: str | None = None, timeout_s: float = 300.0,
-             secure: bool = False, tls: bool = False, loop: dict | None = None, nice: int | None = None) -> dict:
+             secure: bool = False, tls: bool = False, loop: dict | None = None, nice: int | None = None,
+             cpus: dict[str, list[int]] | None = None) -> dict:
     """Start controller, load and plant on a free loopback port; wait for the plant; stop the rest.
 
     ``secure``: the three connect as Zenoh clients, each with its own credentials, to a router that
@@ -293,7 +299,7 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     comp, plant, load = configs_from_scenario(scn, ep, lockstep, rate_hz, controller_delay, out, duration_s, loop,
-                                              nice)
+                                              nice, cpus)
     tmp = Path(workdir or tempfile.mkdtemp(prefix="energyctl-"))
     if secure:
         from .secure import client_zenoh, write_profile

@@ -82,3 +82,17 @@ def background(level: int) -> None:
     now = os.getpriority(os.PRIO_PROCESS, 0)
     if level > now:
         os.setpriority(os.PRIO_PROCESS, 0, level)
+
+
+def set_cpus(cpus: list[int] | None) -> str | None:
+    """Keep the calling thread, and every thread and process it starts afterwards, on ``cpus`` (None: leave it).
+    Returns a one-line reason when the system refused or has no such call, else None."""
+    if not cpus:
+        return None
+    if not hasattr(os, "sched_setaffinity"):
+        return f"cannot keep to CPUs {cpus}: no sched_setaffinity on {sys.platform}"
+    try:
+        os.sched_setaffinity(0, set(cpus))
+    except OSError as e:
+        return f"cannot keep to CPUs {cpus}: {e.strerror}"
+    return None

@@ -149,3 +149,51 @@ def test_a_timer_slack_the_system_refuses_is_one_line_not_an_error():
     before = priority.timer_slack_ns()
     assert priority.set_timer_slack(None) is None and priority.set_timer_slack(0) is None  # 0: leave it
     assert priority.timer_slack_ns() == before
+
+
+def test_a_process_kept_to_cpus_keeps_the_threads_and_processes_it_starts_there():
+    """set_cpus (a process's `cpus` config, applied first thing): the threads started afterwards, Zenoh's runtime
+    included, inherit the affinity (processes it spawns do too: Linux's rule); a CPU the machine does not have is
+    refused by the config, naming the field. Needs two CPUs to show anything."""
+    import pytest
+
+    from schemas.component import ComponentConfig
+
+    have = sorted(os.sched_getaffinity(0))
+    if len(have) < 2:
+        pytest.skip("one CPU: nothing to keep to")
+    one = have[-1]
+    res = in_new_process([
+        "import json, os, threading",
+        "from service.priority import set_cpus",
+        f"assert set_cpus([{one}]) is None",
+        "seen = []",
+        "t = threading.Thread(target=lambda: seen.append(sorted(os.sched_getaffinity(0)))); t.start(); t.join()",
+        "import zenoh",
+        "cfg = zenoh.Config(); cfg.insert_json5('scouting/multicast/enabled', 'false')",
+        "s = zenoh.open(cfg)",
+        "tasks = [int(x) for x in os.listdir('/proc/self/task')]",
+        "print(json.dumps({'thread': seen[0], 'tasks': [sorted(os.sched_getaffinity(x)) for x in tasks]}))",
+        "s.close()",
+    ])
+    import json
+
+    out = json.loads(res.stdout)
+    assert out["thread"] == [one]
+    assert len(out["tasks"]) > 3  # Zenoh's runtime threads exist ...
+    assert all(t == [one] for t in out["tasks"])  # ... and every one of them is on that CPU
+    with pytest.raises(ValueError, match="cpus"):
+        ComponentConfig.model_validate({"id": "a", "cpus": [max(have) + 64]})
+
+
+def test_realtime_stacks_take_cpus_per_role():
+    from clients.cli import role_cpus
+    from clients.live import configs_from_scenario
+
+    cpus = role_cpus("controller=1,plant=0+1")
+    assert cpus == {"controller": [1], "plant": [0, 1]}
+    if not {0, 1} <= os.sched_getaffinity(0):
+        return
+    comp, plant, load = configs_from_scenario(load_scenario(SCENARIOS / "paper-varying-load.toml"),
+                                              "tcp/127.0.0.1:1", False, 1000.0, cpus=cpus)
+    assert comp["cpus"] == [1] and plant["cpus"] == [0, 1] and "cpus" not in load
