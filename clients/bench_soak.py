@@ -37,14 +37,14 @@ def rss_kib(pid: int) -> int | None:
 
 
 def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.0, warmup_s: float = 30.0,
-               record: bool = True) -> dict:
+               record: bool = True, cpus: dict[str, list[int]] | None = None) -> dict:
     seconds = minutes * 60.0
     warmup_s = min(warmup_s, seconds / 3)
     tmp = Path(tempfile.mkdtemp(prefix="energyctl-soak-"))
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     scn = load_scenario(EMBEDDED, ["timing.plant_step_s=5e-5"])
     comp, plant, load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=rate_hz,
-                                              out=str(tmp / "plant.mcap"), duration_s=seconds + 5.0)
+                                              out=str(tmp / "plant.mcap"), duration_s=seconds + 5.0, cpus=cpus)
     comp["loop"] = {"rate_hz": rate_hz, "trigger": "clock"}
     comp["log_rotate_s"] = 60.0
     if not record:
@@ -120,6 +120,7 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
     for p in tmp.glob("*.mcap"):
         os.unlink(p)
     return {"bench": "soak", "minutes": minutes, "rate_hz": rate_hz, "query_hz": query_hz, "warmup_s": warmup_s,
+            "cpus": cpus,
             "rss_kib_after_warmup": float(m[after][0]) if after.any() else None,
             "rss_kib_end": float(m[-1]) if len(m) else None,
             "rss_growth_kib_after_warmup": float(m[after][-1] - m[after][0]) if after.any() else None,

@@ -293,7 +293,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "soak":
         from .bench_soak import bench_soak
 
-        res = bench_soak(args.minutes, rate_hz=args.rate)
+        res = bench_soak(args.minutes, rate_hz=args.rate, cpus=args.cpus)
     elif args.what == "recorder":
         from service.priority import set_nice
 
