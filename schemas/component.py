@@ -151,10 +151,11 @@ class ComponentConfig(Named):
                     ".../z and check it against Z^{r,in} ahead of the window (in a worker process)")
     neighbour_stale_s: Annotated[float, Field(gt=0)] = 0.05
     neighbour_extrapolate_s: Annotated[float, Field(ge=0)] = Field(
-        default=0.01, description="how far a neighbour's rate carries its last P forward to the sample's time (s): "
-                                  "P_j + dP_j/dt min(age, this); 0: its last value as it is. Beyond a message "
-                                  "period or two a rate is a guess: a 200 Hz load silent for 32 ms was carried "
-                                  "560 W off and the realtime loop left the band")
+        default=0.01, description="how far a neighbour's rate carries its last P to the sample's time (s), forward "
+                                  "or back (a sample answered after a stall is older than the message): P_j + dP_j/dt "
+                                  "age, |age| clamped to this; 0: its last value as it is. Beyond a message period "
+                                  "or two a rate is a guess: a 200 Hz load silent for 32 ms was carried 560 W off and "
+                                  "the realtime loop left the band")
     plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
     meas_v_min_V: Annotated[float, Field(gt=0)] = Field(default=1.0, description="reject measurements with v below")
     meas_v_max_V: Annotated[float, Field(gt=0)] = Field(default=1000.0, description="reject measurements with v above")

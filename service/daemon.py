@@ -583,11 +583,13 @@ class Daemon:
             if nb.alive is not nb.alive_seen:
                 self._neighbour_event(nb, t)
             # P^{r,in} = -sum_j P_j^{r,out} at this sample's time: the neighbour's rate carries its last value
-            # forward (first-order hold) over the age of its message, t - t_j, up to neighbour_extrapolate_s, when
-            # both are on one clock and it is younger than neighbour_stale_s; in lockstep the ages are 0 and this is
-            # the plain sum
+            # (first-order hold) over the age of its message, t - t_j, by at most neighbour_extrapolate_s either way,
+            # when both are on one clock (|age| <= neighbour_stale_s). Backwards too: a sample answered late (catch-up
+            # after a stall) is older than the neighbour's newest message, which at -18 kW/s was 96 W ahead of it
+            # and, as the prediction's load power, swung the command by 2.3 kV/s. In lockstep the ages are 0 and
+            # this is the plain sum
             age = t - nb.t
-            P_in -= nb.P + nb.P_dot * min(age, horizon_s) if 0.0 < age <= stale_s else nb.P
+            P_in -= nb.P + nb.P_dot * max(-horizon_s, min(age, horizon_s)) if 0.0 < abs(age) <= stale_s else nb.P
             P_in_dot -= nb.P_dot
         self.reference = "neighbours" if fresh else "none"
         local = self.cfg.local_reference_W

@@ -309,7 +309,8 @@ def test_the_neighbours_power_is_carried_forward_to_the_samples_time_by_its_rate
     """P^{r,in} at sample time t from a neighbour message stamped t_j: P_j + dP_j/dt (t - t_j) while the message is
     younger than neighbour_stale_s, by at most neighbour_extrapolate_s (a realtime load publishes at 200 Hz under a
     1 kHz loop: up to 5 ms old, ~100 W off on the demo's load swings; silent for 32 ms, its rate carried it 560 W
-    off); the plain value when t == t_j (lockstep) or when the clocks disagree."""
+    off); carried back as well when the message is newer than the sample (a sample answered late, after a stall);
+    the plain value when t == t_j (lockstep) or when the clocks disagree (more than neighbour_stale_s apart)."""
     d = daemon_by_hand
     nb = d.neighbours[0]
     seen = []
@@ -330,18 +331,21 @@ def test_the_neighbours_power_is_carried_forward_to_the_samples_time_by_its_rate
     else:
         d.core.step_values = Spy(None, d.core.step_values).step
     nb.P, nb.P_dot = 1200.0, 2.0e4
-    # (sample time, message time): same instant; 3 ms later; a message stamped after the sample (another
-    # clock); one older than neighbour_extrapolate_s but not stale; one older than neighbour_stale_s
+    # (sample time, message time): same instant; 3 ms later; a message stamped 1 ms after the sample; one older
+    # than neighbour_extrapolate_s but not stale; one newer by more than that; one older than neighbour_stale_s
     h = d.cfg.neighbour_extrapolate_s
     assert 0.003 < h < d.cfg.neighbour_stale_s - 0.003
     for k, (t, t_j) in enumerate(((0.010, 0.010), (0.013, 0.010), (0.014, 0.015), (0.020 + h + 0.003, 0.020),
-                                  (0.040 + 2 * d.cfg.neighbour_stale_s, 0.015))):
+                                  (0.034, 0.034 + h + 0.002), (0.040 + 2 * d.cfg.neighbour_stale_s, 0.015))):
         nb.t = t_j
         d._tick(MEAS.encode(k, t, 15.0, 80.0, 80.15, 15.0), 1)
+    assert len(seen) == 6
     assert seen[0] == (-1200.0, -2.0e4)  # same instant: exactly the message
     assert seen[1][0] == pytest.approx(-(1200.0 + 2.0e4 * 0.003), rel=1e-12)  # 3 ms later: 1260 W
-    assert len(seen) == 5 and seen[2][0] == -1200.0 and seen[4][0] == -1200.0  # not extrapolated
-    assert seen[3][0] == pytest.approx(-(1200.0 + 2.0e4 * h), rel=1e-12)  # carried no further than the horizon
+    assert seen[2][0] == pytest.approx(-(1200.0 - 2.0e4 * 0.001), rel=1e-9)  # 1 ms before the message: 1180 W
+    assert seen[3][0] == pytest.approx(-(1200.0 + 2.0e4 * h), rel=1e-12)  # carried no further than the horizon ...
+    assert seen[4][0] == pytest.approx(-(1200.0 - 2.0e4 * h), rel=1e-12)  # ... either way
+    assert seen[5][0] == -1200.0  # clocks apart: not carried
 
 
 def test_a_realtime_plant_starts_its_clock_at_the_controllers_first_answer():
