@@ -45,12 +45,16 @@ def percentiles(xs: list[int]) -> dict:
     return {"p50_us": xs[n // 2] / 1e3, "p99_us": xs[min(n - 1, int(n * 0.99))] / 1e3, "max_us": xs[-1] / 1e3, "n": n}
 
 
-def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4) -> dict:
+def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4, cpus: list[int] | None = None) -> dict:
+    """Round trips plant-side -> daemon -> back, alternated with the same payload through a bare Zenoh echo. cpus:
+    the CPUs the daemon and the echo each keep to (the daemon's `cpus` config; default any)."""
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     tmp = Path(tempfile.mkdtemp(prefix="energyctl-bench-"))
     comp = {"id": "bench", "zenoh": {"mode": "peer", "listen": [ep]}, "neighbours": [],
             "loop": {"rate_hz": 1000.0, "trigger": "sample", "wait": wait}, "delay_samples": 1,
             "interaction_rate_hz": 10.0}
+    if cpus:
+        comp["cpus"] = cpus
     (tmp / "c.toml").write_text(_toml(comp))
     (tmp / "echo.py").write_text(ECHO)
     stats = tmp / "status.json"
@@ -59,7 +63,8 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4) -> di
     with Processes() as procs:
         procs.start("daemon", ["run", "--config", str(tmp / "c.toml"), "--stats-out", str(stats)], env=env)
         echo = subprocess.Popen([sys.executable, str(tmp / "echo.py"), ep], env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                preexec_fn=(lambda: os.sched_setaffinity(0, set(cpus))) if cpus else None)
         procs.procs.append(("echo", echo))
         session = open_session(ZenohConfig(mode="peer", connect=[ep]))
         try:
@@ -97,7 +102,7 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4) -> di
             session.close()
         procs.stop_all()
     d = json.loads(stats.read_text())["loop"] if stats.exists() else {}
-    res = {"bench": "latency", "wait": wait, "round_trips_each": n, "daemon": percentiles(rtt["daemon"]),
+    res = {"bench": "latency", "wait": wait, "cpus": cpus, "round_trips_each": n, "daemon": percentiles(rtt["daemon"]),
            "echo": percentiles(rtt["echo"]), "lost": lost, "daemon_tick_exec_us": d.get("exec_us"),
            "daemon_tick_compute_us": d.get("compute_us"), "daemon_tick_put_us": d.get("publish_us")}
     res["ratio_p50"] = res["daemon"]["p50_us"] / res["echo"]["p50_us"]

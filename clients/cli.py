@@ -219,8 +219,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     if args.lockstep and args.realtime:
         raise ScenarioError("demo: --lockstep or --realtime, not both")
-    # lockstep by default: it regulates in every run and equals energyctl sim; realtime regulated in 25 of 28 runs
-    # of 2 s here (a stall of the shared machine at the wrong moment does the rest; README)
+    # lockstep by default: it regulates in every run and equals energyctl sim; realtime missed in about one 2 s run
+    # of ten here (a stall of the shared machine at the wrong moment; README)
     realtime = args.realtime
     # realtime: the settings the README measured best here, under the user's own --set (which come later)
     scn = _load(str(EMBEDDED / "demo.toml"), [*(DEMO_REALTIME_SETS if realtime else []), *(args.set or [])])
@@ -361,7 +361,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "latency":
         from .bench_latency import bench_latency
 
-        res = bench_latency(n=args.n or 3000, wait=args.wait or "block")
+        res = bench_latency(n=args.n or 3000, wait=args.wait or "block",
+                            cpus=(args.cpus or {}).get("controller"))
     else:
         res = _bench_core(args)
     print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
@@ -616,7 +617,8 @@ def build_parser() -> argparse.ArgumentParser:
     def cpus_opt(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--cpus", type=role_cpus, default=None, metavar="ROLE=CPU[+CPU],...",
                         help="the CPUs controller, plant and load may each run on, e.g. controller=1,plant=0,load=0 "
-                             "(their `cpus` config; default any)")
+                             "(their `cpus` config; default any); bench latency: controller= for the daemon and the "
+                             "echo")
 
     def scen_opts(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--set", action="append", metavar="dotted.key=value",
