@@ -7,7 +7,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, Field, ValidationError, field_validator, model_validator
 
 from .scenario import (
     CircuitParams,
@@ -69,11 +69,17 @@ def cpus_exist(v: list[int] | None) -> list[int] | None:
     import os
 
     if v is not None:
+        if not v:
+            raise ValueError("no CPU given: name at least one, or leave it unset for any")
         n = os.cpu_count() or 1
         missing = sorted(c for c in set(v) if c >= n)
-        if not v or missing:
-            raise ValueError(f"CPUs {missing or v} are not on this machine (it has CPUs 0-{n - 1})")
+        if missing:
+            raise ValueError(f"CPUs {missing} are not on this machine (it has CPUs 0-{n - 1})")
     return v
+
+
+# a CPU list for sched_setaffinity (None: any CPU)
+CpuList = Annotated[list[Annotated[int, Field(ge=0)]] | None, AfterValidator(cpus_exist)]
 
 
 class Named(Strict):
@@ -90,16 +96,11 @@ class Named(Strict):
                                   "on purpose, ns; Linux's default is 50 000, half a period at 10 kHz. Set like nice, "
                                   "before anything starts; 0 leaves the inherited value. Its recorder and forecast "
                                   "processes go back to 50 000 (service.priority)")
-    cpus: list[Annotated[int, Field(ge=0)]] | None = Field(
+    cpus: CpuList = Field(
         default=None, description="CPUs the whole process may run on (sched_setaffinity), Zenoh's threads included, "
                                   "set before anything starts; None = any. A process kept on one CPU hands work "
                                   "between its own threads without waking another CPU (README: on this VM that "
                                   "took Zenoh's put from 90-100 us to 27-32 us)")
-
-    @field_validator("cpus")
-    @classmethod
-    def _cpus_exist(cls, v: list[int] | None) -> list[int] | None:
-        return cpus_exist(v)
 
     @field_validator("id")
     @classmethod
@@ -175,15 +176,10 @@ class ComponentConfig(Named):
         default=None, description="start a new file after this much log time (s)")
     log_queue: Annotated[int, Field(ge=1024, le=4_194_304)] = Field(
         default=131_072, description="recorder ring slots (128 B each); full = counted drop, never a wait")
-    log_writer_cpus: list[Annotated[int, Field(ge=0)]] | None = Field(
+    log_writer_cpus: CpuList = Field(
         default=None, description="CPUs the recorder's writer process may run on (sched_setaffinity); None = any. "
                                   "Keep it off the CPU the loop runs on: on 2 vCPUs, [1] halved the loop overruns "
                                   "the writer adds (README)")
-
-    @field_validator("log_writer_cpus")
-    @classmethod
-    def _writer_cpus_exist(cls, v: list[int] | None) -> list[int] | None:
-        return cpus_exist(v)
 
 
 class PlantPeerConfig(Named):
