@@ -200,7 +200,7 @@ class PlantPeerConfig(Named):
         default=1, description="realtime: the command answering sample k acts from sampling instant k + this")
     lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
     realtime_spin_us: Annotated[float, Field(ge=0, le=1000)] = Field(
-        default=60.0, description="realtime: the plant sleeps on its command queue until this long before each "
+        default=60.0, description="realtime: the plant sleeps until this long before each "
                                   "sampling instant and spins the rest (µs): a timed wait here ends 17 µs late "
                                   "p50, 87 µs p99 (energyctl bench wake), and the spin costs this much CPU per "
                                   "period")
