@@ -282,8 +282,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not regulated and realtime:
         c = res["counters"]
         print(f"the plant ran {c.get('stale_periods', 0)} periods with neither a command nor a plan and sent "
-              f"{c.get('plant_late_samples', 0)} of {c.get('samples', 0)} samples late: stalls of this machine, "
-              "not of the controller (README). `energyctl demo --lockstep` is the deterministic variant.")
+              f"{c.get('plant_late_samples', 0)} of {c.get('samples', 0)} samples late: the machine did not keep up "
+              "(stalls, or too little CPU for this rate with three recorders), not the control law (README). "
+              "`energyctl demo --lockstep` is the deterministic variant.")
     return 0 if regulated else 1
 
 
