@@ -36,6 +36,16 @@ def rss_kib(pid: int) -> int | None:
     return None
 
 
+def half_growth(t: np.ndarray, m: np.ndarray, warmup_s: float, half: int) -> float | None:
+    """RSS growth (KiB) over the first (half 0) or second (1) half of the samples after the warm-up."""
+    after = np.nonzero(t >= warmup_s)[0]
+    if len(after) < 3:
+        return None
+    mid = after[len(after) // 2]
+    lo, hi = (after[0], mid) if half == 0 else (mid, after[-1])
+    return float(m[hi] - m[lo])
+
+
 def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.0, warmup_s: float = 30.0,
                record: bool = True, cpus: dict[str, list[int]] | None = None) -> dict:
     seconds = minutes * 60.0
@@ -125,6 +135,10 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             "rss_kib_end": float(m[-1]) if len(m) else None,
             "rss_growth_kib_after_warmup": float(m[after][-1] - m[after][0]) if after.any() else None,
             "rss_slope_kib_per_min": slope * 60 if slope is not None else None,
+            # a leak grows as much in the second half as in the first; an allocator warming up (arenas, caches)
+            # grows in the first and levels off
+            "rss_growth_kib_first_half": half_growth(t, m, warmup_s, 0),
+            "rss_growth_kib_second_half": half_growth(t, m, warmup_s, 1),
             "loop_ticks": loop.get("ticks"), "overruns": loop.get("overruns"), "overrun_pct": loop.get("overrun_pct"),
             "no_new_sample": loop.get("no_new_sample"), "missing_samples": loop.get("missing_samples"),
             "loop_exec_us": loop.get("exec_us"), "loop_publish_us": loop.get("publish_us"),

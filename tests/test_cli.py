@@ -357,3 +357,18 @@ def test_the_query_table_names_each_fields_unit():
                      "neighbours.load.age_s": "s", "neighbours.load.P_r_out": "W", "neighbours.load.messages": "",
                      "controller.limits.du_dt_max_V_per_s": "V/s", "controller.limits.i_floor_A": "A",
                      "controller.K_per_s": "1/s", "controller.lqr_K1_ohm": "Ω"}
+
+
+def test_the_soak_tells_a_leak_from_an_allocator_warming_up():
+    """bench soak's halves: a resident size growing linearly grows as much in the second half after the warm-up
+    as in the first; one that levels off grows in the first only."""
+    import numpy as np
+
+    from clients.bench_soak import half_growth
+
+    t = np.arange(0.0, 600.0)
+    leak = 100_000 + 2.0 * t
+    warming = 100_000 + 2.0 * np.minimum(t, 200.0)
+    assert half_growth(t, leak, 30.0, 0) == pytest.approx(half_growth(t, leak, 30.0, 1), rel=0.02)
+    assert half_growth(t, warming, 30.0, 0) > 300 and half_growth(t, warming, 30.0, 1) == 0.0
+    assert half_growth(t[:2], leak[:2], 30.0, 0) is None
