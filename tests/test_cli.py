@@ -288,8 +288,9 @@ def test_realtime_stacks_leave_late_detection_to_the_scenario():
 
 
 def test_realtime_stacks_take_the_load_power_the_neighbour_announces_unless_the_scenario_says_otherwise():
-    """configs_from_scenario: realtime sets controller.load_power = "reference"; lockstep keeps the scenario's
-    (default "measured", so lockstep still equals sim); a value the scenario sets is kept."""
+    """configs_from_scenario: realtime sets controller.load_power = "reference" and regulation = "energy"; lockstep
+    keeps the scenario's (defaults "measured" and "paper", so lockstep still equals sim); a value the scenario sets
+    is kept."""
     from clients.live import configs_from_scenario
     from schemas.scenario import load_scenario
 
@@ -302,6 +303,13 @@ def test_realtime_stacks_take_the_load_power_the_neighbour_announces_unless_the_
 
     assert power([]) == "reference" and power([], lockstep=True) == "measured"
     assert power(['controller.load_power="measured"']) == "measured"
+    comp, _p, _l = configs_from_scenario(load_scenario(path), "tcp/127.0.0.1:1", lockstep=False, rate_hz=1000.0)
+    assert comp["controller"]["regulation"] == "energy"  # realtime: the stored energy at K_E ...
+    comp, _p, _l = configs_from_scenario(load_scenario(path), "tcp/127.0.0.1:1", lockstep=True, rate_hz=1000.0)
+    assert comp["controller"]["regulation"] == "paper"  # ... lockstep: the paper's map, as sim
+    comp, _p, _l = configs_from_scenario(load_scenario(path, ['controller.regulation="paper"']), "tcp/127.0.0.1:1",
+                                         lockstep=False, rate_hz=1000.0)
+    assert comp["controller"]["regulation"] == "paper"
 
 
 def test_bench_middleware_measures_each_fact_of_the_design_notes():
