@@ -48,6 +48,9 @@ def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: di
     m = len(tr["t"]) if n is None else n
     comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False,
                                          rate_hz=scn.timing.control_rate_hz)
+    # the controller the trace was made with (not the realtime stacks' load power and regulation): the daemon's
+    # commands are then the trace's, and its loop-delay estimate from the trace's u holds
+    comp["controller"] = {**scn.controller.model_dump(), "delay_compensation_samples": None}
     comp["neighbour_stale_s"] = 1e9
     comp["log_dir"] = log_dir
     comp["delay_samples"] = scn.timing.delay_samples
