@@ -28,6 +28,8 @@ CONTROLLERS = ("fblc", "smc", "lqr", "bm", "fixed")
 DEMO_REALTIME_HZ = 2000.0
 DEMO_REALTIME_DELAY = 16
 DEMO_REALTIME_S = 2.0  # "a few seconds"
+REALTIME_STACK_NOTE = ("every realtime stack also runs controller.load_power=\"reference\" "
+                       "controller.regulation=\"energy\" unless the scenario or --set names them (README)")
 DEMO_REALTIME_SETS = ["controller.K_per_s=1500.0", "timing.plant_step_s=5e-5", "controller.observer_gain=0.15"]
 
 ROBUSTNESS_GRID = {
@@ -691,7 +693,8 @@ def build_parser() -> argparse.ArgumentParser:
                                              "acts (plant schedule = controller prediction; the controller answers "
                                              "up to that many queued samples after a stall; default "
                                              f"{DEMO_REALTIME_DELAY}); realtime also sets "
-                                             f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise")
+                                             f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise; "
+                                             f"{REALTIME_STACK_NOTE}")
     nice_opt(d)
     cpus_opt(d)
     scen_opts(d)
@@ -711,7 +714,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "recovery", "wake", "middleware"])
     b.add_argument("--rates", metavar="HZ,HZ,...",
                    help="realtime: control rates to try (default 1000,2000,5000,10000), with "
-                        f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise")
+                        f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise; {REALTIME_STACK_NOTE}")
     b.add_argument("--delays", metavar="N,N,...",
                    help="realtime: loop-delay schedules to try, in samples or as a time (8ms: 8 samples at 1 kHz, 16 "
                         "at 2 kHz); the controller answers up to that many queued samples after a stall (default "
