@@ -20,6 +20,7 @@ from queue import Empty
 from schemas.codec import MEAS
 from schemas.component import ZenohConfig
 from service.bus import free_tcp_port, key, open_session, publisher, queued
+from service.priority import set_cpus
 
 from .live import Processes, _toml, wait_until
 from .machine import StealMeter
@@ -64,7 +65,7 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4, cpus:
         procs.start("daemon", ["run", "--config", str(tmp / "c.toml"), "--stats-out", str(stats)], env=env)
         echo = subprocess.Popen([sys.executable, str(tmp / "echo.py"), ep], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                preexec_fn=(lambda: os.sched_setaffinity(0, set(cpus))) if cpus else None)
+                                preexec_fn=(lambda: set_cpus(cpus)) if cpus else None)
         procs.procs.append(("echo", echo))
         session = open_session(ZenohConfig(mode="peer", connect=[ep]))
         try:

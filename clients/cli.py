@@ -223,17 +223,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise ScenarioError("demo: --lockstep or --realtime, not both")
     # lockstep by default: it regulates in every run and equals energyctl sim; realtime missed in about one 2 s run
     # of ten here (a stall of the shared machine at the wrong moment; README)
-    realtime = args.realtime
     # realtime: the settings the README measured best here, under the user's own --set (which come later)
-    scn = _load(str(EMBEDDED / "demo.toml"), [*(DEMO_REALTIME_SETS if realtime else []), *(args.set or [])])
-    if realtime and args.delay is None:
+    scn = _load(str(EMBEDDED / "demo.toml"), [*(DEMO_REALTIME_SETS if args.realtime else []), *(args.set or [])])
+    if args.realtime and args.delay is None:
         args.delay = DEMO_REALTIME_DELAY
-    if realtime and args.duration is None and not any(x.startswith("timing.duration_s") for x in args.set or []):
+    if args.realtime and args.duration is None and not any(x.startswith("timing.duration_s") for x in args.set or []):
         args.duration = DEMO_REALTIME_S
     logs = Path(args.logs)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     out = logs / f"demo-{stamp}.mcap"
-    mode = "offline" if args.offline else "realtime" if realtime else "lockstep"
+    mode = "offline" if args.offline else "realtime" if args.realtime else "lockstep"
     if args.secure and args.offline:
         raise ScenarioError("demo: --secure needs Zenoh (not --offline)")
     if args.tls and not args.secure:
@@ -241,7 +240,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     mode += ", secure profile: router with authentication and access control" if args.secure else ""
     mode += ", mutual TLS" if args.tls else ""
     rate = args.rate or (scn.timing.control_rate_hz if mode != "realtime" else DEMO_REALTIME_HZ)
-    sched = f", {args.delay}-sample schedule" if realtime else ""  # the scenario's description is lockstep's
+    sched = f", {args.delay}-sample schedule" if args.realtime else ""  # the scenario's description is lockstep's
     print(f"energyctl {__version__} demo ({mode}, {rate:g} Hz{sched}): {scn.description}", flush=True)
     t0 = time.perf_counter()
     if args.offline:
@@ -254,7 +253,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         from .live import run_live
 
         logs.mkdir(parents=True, exist_ok=True)
-        res = run_live(scn, not realtime, rate, str(out), args.duration, args.delay, secure=args.secure,
+        res = run_live(scn, not args.realtime, rate, str(out), args.duration, args.delay, secure=args.secure,
                        tls=args.tls, nice=args.nice, cpus=args.cpus)
         m = res["metrics"]
         print(metrics_table([([scn.name, f"{scn.controller.kind} over Zenoh"], m)], ["scenario", "controller"]))
@@ -281,7 +280,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     print(f"{wall:.1f} s wall; log: {out}")
     print("regulated: v within +-2 % of v_ref" if regulated else "NOT regulated")
-    if not regulated and realtime:
+    if not regulated and args.realtime:
         c = res["counters"]
         print(f"the plant ran {c.get('stale_periods', 0)} periods with neither a command nor a plan and sent "
               f"{c.get('plant_late_samples', 0)} of {c.get('samples', 0)} samples late: the machine did not keep up "

@@ -42,7 +42,7 @@ typedef struct {
     double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC, late_tol;
     double obs; /* observer_gain (0: the prediction starts from the raw sample) */
     int load_ref; /* load_power: 1 = -P_in (the neighbours' announced power), 0 = v i_2 measured */
-    /* the observer: seq of its last estimate, the estimate (i, v, u) and the load power measured with it */
+    /* the observer: seq of its last estimate, the estimate (i, v, u) and the load power (W) carried with it */
     double x_seq, x_hat[3], x_P;
     /* late-command detection: the last step's seq and measured u, and the verdict */
     double last_seq_u, last_u;
@@ -298,13 +298,13 @@ static void remember(Kernel *k, double seq, double r, double plan)
 
 /* ControlCore._law: du/dt within the limits for the period from t_{k+dd}, from the state predicted there; *raw
    before the limits, *u_zp the u_z it implies. */
-static double law(const Kernel *k, double i_p, double v_p, double u_p, double P_meas, double P_in, double P_in_dot,
+static double law(const Kernel *k, double i_p, double v_p, double u_p, double P_load, double P_in, double P_in_dot,
                   int dd, double r_prev, double *raw_p, double *u_zp)
 {
     const double R = k->R, L = k->L, C = k->C, T = k->T;
     const double u_min = k->u_min, u_max = k->u_max, r_max = k->r_max, i_floor = k->i_floor;
     const double v_ref = k->v_ref, K = k->K, alpha = k->alpha, phi = k->phi, decay = k->decay, keC = k->keC;
-    double P_app = P_meas + (-P_in_dot) * ((double)dd + 0.5) * T;
+    double P_app = P_load + (-P_in_dot) * ((double)dd + 0.5) * T;
     double P_in_app = P_in + P_in_dot * (double)dd * T;
     double u_z = 0.0, r;
 
@@ -440,14 +440,14 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
     }
 
     /* state at the start of the period this command will act on */
-    double P_meas = k->load_ref ? -P_in : sv * si2;  /* ControlCore.step: controller.load_power */
+    double P_load = k->load_ref ? -P_in : sv * si2;  /* ControlCore.step: controller.load_power */
     double Pdot = -P_in_dot;
     double i_p = si_, v_p = sv, u_p = su;
     if (k->obs > 0.0)
-        observe(k, seq, si_, sv, su, P_meas, late, &i_p, &v_p, &u_p);
+        observe(k, seq, si_, sv, su, P_load, late, &i_p, &v_p, &u_p);
     for (int j = 0; j < d; j++) {
         double r_j = late ? 0.0 : issued(k, seq - d + j);
-        predict_in_range(&i_p, &v_p, &u_p, P_meas + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C,
+        predict_in_range(&i_p, &v_p, &u_p, P_load + Pdot * ((double)j + 0.5) * T, r_j, T, k->n_pred, R, L, C,
                          u_min, u_max);
     }
     o[O_IPRED] = i_p; o[O_VPRED] = v_p; o[O_UPRED] = u_p;
@@ -458,13 +458,13 @@ static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, d
 
     /* the command for the period from t_{k+d}, and the plan for the one after */
     double raw, u_z, raw1, u_z1;
-    double r = law(k, i_p, v_p, u_p, P_meas, P_in, P_in_dot, d, k->r_prev, &raw, &u_z);
+    double r = law(k, i_p, v_p, u_p, P_load, P_in, P_in_dot, d, k->r_prev, &raw, &u_z);
     double plan = 0.0;
     if (k->plan) {
         double i1 = i_p, v1 = v_p, u1 = u_p;
-        predict_in_range(&i1, &v1, &u1, P_meas + Pdot * ((double)d + 0.5) * T, r, T, k->n_pred, R, L, C, u_min,
+        predict_in_range(&i1, &v1, &u1, P_load + Pdot * ((double)d + 0.5) * T, r, T, k->n_pred, R, L, C, u_min,
                          u_max);
-        plan = law(k, i1, v1, u1, P_meas, P_in, P_in_dot, d + 1, r, &raw1, &u_z1);
+        plan = law(k, i1, v1, u1, P_load, P_in, P_in_dot, d + 1, r, &raw1, &u_z1);
     }
     o[O_LIMITED] = (r != raw) ? 1.0 : 0.0;
     o[O_LATE] = late ? 1.0 : 0.0;

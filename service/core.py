@@ -304,7 +304,7 @@ class ControlCore(CoreBase):
         self._last_seq = -2  # seq and measured u of the last step (late-command detection)
         self._last_u = 0.0
         self._x_seq = -2  # the observer (observer_gain > 0): seq of its last estimate, the estimate (i, v, u) and
-        self._x_hat = (0.0, 0.0, 0.0)  # the load power v i_load (W) measured with it
+        self._x_hat = (0.0, 0.0, 0.0)  # the load power P_load (W) carried with it
         self._x_P = 0.0
         self.estimator.reset()
         self.steps = 0
@@ -370,14 +370,14 @@ class ControlCore(CoreBase):
             out.z_out0, out.z_out1 = self.estimator.z_out
 
         # --- state at the start of the period this command will act on (delay prediction) ---
-        # the load power (W): measured at the port, or as the neighbours announce it (controller.load_power)
-        P_meas = -inc.P_r_in if self._load_ref else s.v * s.i_load
+        # the load power P_load (W): measured at the port, or as the neighbours announce it (controller.load_power)
+        P_load = -inc.P_r_in if self._load_ref else s.v * s.i_load
         Pdot = -inc.P_r_in_dot  # the load's rate as announced by the neighbour
-        i_p, v_p, u_p = self._observe(s, late, P_meas) if self._obs > 0.0 else (s.i, s.v, s.u)
+        i_p, v_p, u_p = self._observe(s, late, P_load) if self._obs > 0.0 else (s.i, s.v, s.u)
         n = self.n_pred
         for k in range(d):
             r_k = 0.0 if late else self.issued(seq - d + k)
-            i_p, v_p, u_p = predict_in_range(i_p, v_p, u_p, P_meas + Pdot * (k + 0.5) * T, r_k, T, n, R, L, C,
+            i_p, v_p, u_p = predict_in_range(i_p, v_p, u_p, P_load + Pdot * (k + 0.5) * T, r_k, T, n, R, L, C,
                                              u_min, u_max)
         out.i_pred, out.v_pred, out.u_pred = i_p, v_p, u_p
 
@@ -387,12 +387,12 @@ class ControlCore(CoreBase):
         out.y_z, out.y_ref, out.e = y_z, y_ref, y_z - y_ref
 
         # --- the command for the period from t_{k+d}, and the plan for the one after ---
-        r, raw, u_z = self._law(i_p, v_p, u_p, P_meas, inc, d, self.r_prev)
+        r, raw, u_z = self._law(i_p, v_p, u_p, P_load, inc, d, self.r_prev)
         plan = 0.0
         if self._plan:
-            i1, v1, u1 = predict_in_range(i_p, v_p, u_p, P_meas + Pdot * (d + 0.5) * T, r, T, n, R, L, C, u_min,
+            i1, v1, u1 = predict_in_range(i_p, v_p, u_p, P_load + Pdot * (d + 0.5) * T, r, T, n, R, L, C, u_min,
                                           u_max)
-            plan = self._law(i1, v1, u1, P_meas, inc, d + 1, r)[0]
+            plan = self._law(i1, v1, u1, P_load, inc, d + 1, r)[0]
         out.limited = r != raw
         out.late = late
         out.du_dt_raw = raw
@@ -406,7 +406,7 @@ class ControlCore(CoreBase):
         self.steps += 1
         return out
 
-    def _law(self, i_p: float, v_p: float, u_p: float, P_meas: float, inc: Incoming, dd: int,
+    def _law(self, i_p: float, v_p: float, u_p: float, P_load: float, inc: Incoming, dd: int,
              r_prev: float) -> tuple[float, float, float]:
         """(du/dt within the limits, du/dt before them, u_z) for the period from t_{k+dd}, from the state
         (i_p, v_p, u_p) predicted there; r_prev (V/s) is where the exact mapping linearises."""
@@ -414,7 +414,7 @@ class ControlCore(CoreBase):
         u_min, u_max, r_max, i_floor = self._lim
         v_ref, K, cancel_Et, alpha, phi, decay = self._gains
         T = self.T
-        P_app = P_meas + (-inc.P_r_in_dot) * (dd + 0.5) * T  # load power over that period
+        P_app = P_load + (-inc.P_r_in_dot) * (dd + 0.5) * T  # load power over that period
         keC = self._keC
         P_in_app = inc.P_r_in + inc.P_r_in_dot * dd * T
         kind = self._kind
