@@ -12,6 +12,8 @@ Each part is one fact of the notes, measured the way the daemon uses Zenoh and M
   lateness and its missed periods;
 * ``get_us``: a queryable's ``get()`` round trip (channel handler, reply, drop);
 * ``liveliness_sigkill_ms``: how long after kill -9 of a token's holder its loss is seen;
+* ``cpu_per_message``: the CPU time (all threads of a process) one message costs through Zenoh, against a Unix socket
+  pair, both ends in one process, back to back and 0.5 ms apart: the budget a realtime stack spends per sample;
 * ``encode_us``: one Measurement as our struct codec, pydantic JSON and stdlib JSON;
 * ``mcap``: ``add_message`` rate with zstd chunks, and the longest single call (the one that closes a chunk) for
   256 KiB and 4 MiB chunks.
@@ -245,6 +247,68 @@ def _encode(n: int = 20_000) -> dict:
             "stdlib_json": timed(lambda: json.dumps(d))}
 
 
+def _echo_cpu(send, recv, echo_once, seconds: float) -> dict:
+    """Round trips through an echo on a second thread of this process, back to back and PUT_GAP_S apart: the
+    process's CPU time (every thread: both ends, and Zenoh's own) per message carried, and the wall time per round
+    trip. ``echo_once`` receives one message and sends it back (it raises once the transport is closed)."""
+    import threading
+
+    def echo() -> None:
+        try:
+            while True:
+                echo_once()
+        except Exception:  # noqa: BLE001 - closed: the measurement is over
+            return
+
+    threading.Thread(target=echo, daemon=True).start()
+    payload = bytes(64)
+    for _ in range(50):  # warm up: the first round trips set up routes and buffers
+        send(payload)
+        recv()
+    out = {}
+    for gap_s in (0.0, PUT_GAP_S):
+        n = 0
+        c0, w0 = time.process_time(), time.monotonic()
+        while time.monotonic() - w0 < seconds:
+            send(payload)
+            recv()
+            n += 1
+            if gap_s:
+                time.sleep(gap_s)
+        cpu, wall = time.process_time() - c0, time.monotonic() - w0
+        out[f"gap_{gap_s * 1e6:.0f}us"] = {"cpu_us_per_message": round(cpu / (2 * n) * 1e6, 1),
+                                          "round_trip_us": round(wall / n * 1e6, 1), "round_trips": n}
+    return out
+
+
+def _cpu_per_message(ep: str, seconds: float) -> dict:
+    """What carrying one message costs in CPU time, Zenoh against the kernel's own socket: two Zenoh sessions in this
+    process connected over TCP loopback (publishers as the daemon's, ``RingChannel(1)`` subscribers read with a
+    blocking ``recv()``: no Python callback), and a Unix socket pair, each echoed by a second thread; back to back
+    and PUT_GAP_S apart (each wake-up then finds its threads asleep, as in a paced loop)."""
+    import socket
+
+    a = open_session(ZenohConfig(mode="peer", listen=[ep]))
+    b = open_session(ZenohConfig(mode="peer", connect=[ep]))
+    try:
+        ping, pong = publisher(a, "mw/cpu/ping"), publisher(b, "mw/cpu/pong")
+        sub_b = b.declare_subscriber("mw/cpu/ping", zenoh.handlers.RingChannel(1))
+        sub_a = a.declare_subscriber("mw/cpu/pong", zenoh.handlers.RingChannel(1))
+        time.sleep(0.3)
+        out = {"zenoh": _echo_cpu(ping.put, sub_a.recv, lambda: pong.put(sub_b.recv().payload.to_bytes()), seconds)}
+    finally:
+        b.close()  # ends the echo thread's recv()
+        a.close()
+    x, y = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        out["unix_socket"] = _echo_cpu(x.send, lambda: x.recv(256), lambda: y.send(y.recv(256)), seconds)
+    finally:
+        y.shutdown(socket.SHUT_RDWR)  # ends the echo thread's recv() (a close alone would not wake it)
+        y.close()
+        x.close()
+    return out
+
+
 def _mcap(tmp: Path, n: int = 100_000) -> dict:
     from mcap.writer import CompressionType, Writer
 
@@ -311,6 +375,8 @@ def bench_middleware(n: int = 3000, receive_s: float = 3.0, progress=lambda m: N
             peer.kill()
             peer.wait()
         listener.close()
+    progress("CPU per message: Zenoh and a Unix socket")
+    res["cpu_per_message"] = _cpu_per_message(f"tcp/127.0.0.1:{free_tcp_port()}", receive_s)
     progress("encoding and MCAP writer")
     res["encode_us"] = _encode()
     res["mcap"] = _mcap(tmp)

@@ -30,7 +30,10 @@ def judge(res: dict) -> dict:
            # not a criterion either: missed + late among the samples the stand-in sent, and applied, on time
            "missed_or_late_rig_on_time_pct": (round(100.0 * c["missed_or_late_rig_on_time"]
                                                     / c["rig_on_time_samples"], 3)
-                                              if c.get("rig_on_time_samples") else None)}
+                                              if c.get("rig_on_time_samples") else None),
+           # not a criterion: the CPU budget over the run (each process's % of one CPU; host_busy_pct: of all the
+           # machine's CPUs, 100 = saturated)
+           "cpu": res.get("cpu")}
     row["ok"] = (not m.get("diverged") and dev is not None and dev <= BAND_PCT and overrun_pct < LIMIT_PCT
                  and missed_pct < LIMIT_PCT)
     return row
@@ -70,7 +73,17 @@ def progress_line(r: dict) -> str:
                    f"{', diverged' if r['diverged'] else ''}, overruns {r['overrun_pct']:.2f} %, missed/late "
                    f"{r['missed_or_late_pct']:.3f} %; of the rig's on-time samples "
                    f"{num(r['missed_or_late_rig_on_time_pct'], '.3f')} %; host steal "
-                   f"{num(r.get('host_steal_pct'), '.2f')} %)")
+                   f"{num(r.get('host_steal_pct'), '.2f')} %{cpu_text(r.get('cpu'))})")
+
+
+def cpu_text(cpu: dict | None) -> str:
+    """The CPU budget of one run for a progress line: each process's % of one CPU, and how busy the machine was."""
+    if not cpu:
+        return ""
+    parts = [f"{name} {cpu[k]:.0f}" for name, k in (("controller", "controller_pct"), ("plant", "plant_pct"),
+                                                    ("load", "load_pct")) if cpu.get(k) is not None]
+    busy = cpu.get("host_busy_pct")
+    return f"; CPU % of one: {', '.join(parts) or '-'}; CPUs busy {'-' if busy is None else f'{busy:.0f}'} %"
 
 
 def summarize(rows: list[dict]) -> list[dict]:

@@ -338,7 +338,19 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
         "error": results.get("daemon", (None, "", ""))[2][-800:]}
     res["endpoint"] = ep
     res["daemon_log"] = (res["daemon"].get("logging") or {}).get("path")
+    res.setdefault("cpu", {})["controller_pct"] = (res["daemon"].get("loop") or {}).get("cpu_pct")
+    res["cpu"]["load_pct"] = _last_json(results.get("load", (None, "", ""))[1]).get("cpu_pct")
     return res
+
+
+def _last_json(stdout: str) -> dict:
+    """A child's result: the last line of its stdout as a JSON object ({} if there is none)."""
+    lines = (stdout or "").strip().splitlines()
+    try:
+        out = json.loads(lines[-1]) if lines else {}
+    except json.JSONDecodeError:
+        return {}
+    return out if isinstance(out, dict) else {}
 
 
 def port_open(endpoint: str) -> bool:

@@ -16,11 +16,13 @@ import numpy as np
 
 from schemas.codec import CMD, MEAS, PLANT, DecodeError, Z
 from schemas.component import LoadPeerConfig, PlantPeerConfig
-from service.bus import key, open_session, publisher, queued
+from service.bus import key, latest, open_session, publisher, queued
 from service.feasibility import announced_window, load_box
 from service.plant import CommandSchedule, RLCPlant, Sensor, load_current
 from service.profiles import Profile
 from service.sim import compute_metrics, substeps
+
+from .machine import ProcessCpu, StealMeter
 
 PLANT_TRACE = ("t", "i", "v", "u", "i_load", "P_l", "i_meas", "v_meas", "u_meas", "i_load_meas", "du_dt",
                "du_dt_applied", "y_z_true", "y_ref_true")
@@ -210,6 +212,9 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                 if c is not None and c[0] == k:
                     return c[2], c[3]
 
+        # the CPU budget over the samples: this process's share and how busy the machine's CPUs were (the stack's
+        # three processes, their Zenoh threads and recorders, and anything else running)
+        cpu, host = ProcessCpu().start(), StealMeter().start()
         for k in range(N):
             if stop.is_set():
                 break
@@ -270,6 +275,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
                     rec.offer(t_cmd, t, (k, t, du_for_k, sched.prev[1], False))
                 rec.offer(t_plant, t, (t, pi, pv, pu, P_l))
             plant.advance(r_apply, T, n_sub)
+        cpu.stop()
+        host.stop()
     except BaseException:
         if rec is not None:  # keep what was recorded
             rec.close()
@@ -287,7 +294,8 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
     counters.update(sched.counts)
     if not lockstep:
         counters.update(rig_on_time_misses(sent_on_time, answered_in_time, counters["samples"], sched.d))
-    res = {"metrics": metrics, "counters": counters, "pacing": cfg.pacing, "sample_rate_hz": cfg.sample_rate_hz}
+    res = {"metrics": metrics, "counters": counters, "pacing": cfg.pacing, "sample_rate_hz": cfg.sample_rate_hz,
+           "cpu": {"plant_pct": cpu.pct, "host_busy_pct": host.busy_pct, "host_steal_pct": host.pct}}
     if lat_ns:
         lat = sorted(lat_ns)
         q = len(lat)
@@ -304,6 +312,15 @@ def run_plant(cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr) -> di
             print(f"energyctl plant: the trace log is incomplete: {rec.error}", file=log)
     res["trace"] = trace
     return res
+
+
+def _plant_clock(payload: bytes) -> tuple[int, float] | None:
+    """(seq, t) of a plant sample; None for a payload that is not one."""
+    try:
+        v = MEAS.decode(payload)
+    except DecodeError:
+        return None
+    return v[0], v[1]
 
 
 def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
@@ -330,7 +347,13 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
     last: tuple[float, float, float] | None = None
     try:
         pub = publisher(session, key(cfg.prefix, cfg.id, "z"))
-        sub, meas_q = queued(session, key(cfg.prefix, cfg.plant_id, "meas")) if cfg.plant_id else (None, None)
+        t_meas = key(cfg.prefix, cfg.plant_id, "meas")
+        lockstep = cfg.pacing == "lockstep"
+        # lockstep: every plant sample, queued by a callback (one message each); realtime: only the newest, in a
+        # ring that Zenoh fills without Python, read once per message sent (a callback per sample took a quarter of a
+        # CPU at 2-10 kHz for a 200 Hz publisher: README, "The CPU budget")
+        sub, meas_q = (None, None) if not cfg.plant_id else queued(session, t_meas) if lockstep else \
+            (latest(session, t_meas), None)
         rec, z_topic = None, f"{cfg.prefix}/{cfg.id}/z"
         if cfg.log_dir:
             from datetime import UTC, datetime
@@ -342,28 +365,20 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
                                {"config": {"json": cfg.model_dump_json()}})
             rec.wait_ready()
         token = session.liveliness().declare_token(key(cfg.prefix, cfg.id, "alive"))  # ready: announce
+        cpu = ProcessCpu().start()
         t_start = time.monotonic()
         period = 1.0 / cfg.rate_hz
         nxt = time.monotonic()
         t_plant, seq_plant = None, 0
         while not stop.is_set() and time.monotonic() - t_start < cfg.duration_s:
-            m = None
-            if meas_q is not None:
-                try:  # lockstep: wait for the next sample; realtime: take the newest, if any
-                    m = meas_q.get(timeout=0.05) if cfg.pacing == "lockstep" else meas_q.get_nowait()
-                    while cfg.pacing != "lockstep" and not meas_q.empty():
-                        m = meas_q.get_nowait()
+            if lockstep:  # wait for the next sample
+                try:
+                    m = meas_q.get(timeout=0.05)[1] if meas_q is not None else None
                 except Empty:
                     m = None
-                if m is not None:
-                    try:
-                        v = MEAS.decode(m[1])
-                        seq_plant, t_plant = v[0], v[1]
-                    except DecodeError:
-                        m = None
-            if cfg.pacing == "lockstep":
-                if m is None:
+                if m is None or (v := _plant_clock(m)) is None:
                     continue
+                seq_plant, t_plant = v
                 seq, t = seq_plant, t_plant
             else:
                 now = time.monotonic()
@@ -371,6 +386,9 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
                     time.sleep(min(nxt - now, 0.001))
                     continue
                 nxt += period
+                if sub is not None and (s := sub.try_recv()) is not None and \
+                        (v := _plant_clock(s.payload.to_bytes())) is not None:  # the newest sample, if any
+                    seq_plant, t_plant = v
                 if sub is not None and t_plant is None:
                     continue  # follow the plant's clock once it runs
                 seq, t = sent, (t_plant if t_plant is not None else now - t_start)
@@ -385,9 +403,10 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
             if rec is not None:
                 rec.offer(z_topic, t, vals)
             sent += 1
+        cpu.stop()
         token.undeclare()
         if rec is not None:
             rec.close()
     finally:
         session.close()
-    return {"sent": sent, "log": rec.paths if rec is not None else None}
+    return {"sent": sent, "log": rec.paths if rec is not None else None, "cpu_pct": cpu.pct}

@@ -42,6 +42,7 @@ STATES = ("configured", "active", "inactive", "shutdown")
 HIST = 2048  # ticks of command history for the measured loop delay (a power of two)
 LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
 STATS_EVERY_NS = 250_000_000  # and the loop's time distributions at most this often
+CPU_EVERY_MASK = 1023  # the loop reads the process's CPU time every 1024 ticks (LoopStats.cpu_pct)
 REJECT_EVENT_EVERY_NS = 10_000_000  # at most one recorded reject event per reason this often (all are counted)
 
 
@@ -61,6 +62,9 @@ class LoopStats:
         self.lockstep_timeouts = 0
         self.window_exec_max = self.window_period_max = 0  # since the last loop record
         self._dist: tuple[int, dict] | None = None  # (when, distributions): see summary
+        # the process's CPU time (all threads: the loop, Zenoh's, queries) and the wall time (s), at the first tick
+        # and at every CPU_EVERY-th since: cpu_pct in summary() is its share of one CPU while ticks came
+        self._cpu0 = self._cpu1 = (0.0, 0.0)
 
     def record(self, period_ns: int, exec_ns: int, publish_ns: int = 0) -> None:
         k = self.k
@@ -69,6 +73,11 @@ class LoopStats:
         self.publish[k] = publish_ns
         self.k = k + 1 if k + 1 < self.n else 0
         self.ticks += 1
+        if self.ticks & CPU_EVERY_MASK == 1:  # two clock reads every CPU_EVERY ticks
+            mark = (time.process_time(), time.monotonic())
+            if self.ticks == 1:
+                self._cpu0 = mark
+            self._cpu1 = mark
         if exec_ns > self.window_exec_max:
             self.window_exec_max = exec_ns
         if period_ns > self.window_period_max:
@@ -84,12 +93,19 @@ class LoopStats:
         m = min(self.ticks, self.n)
         out = {"ticks": self.ticks, "overruns": self.overruns, "no_new_sample": self.no_new_sample,
                "missing_samples": self.missing_samples, "lockstep_timeouts": self.lockstep_timeouts,
-               "overrun_pct": 100.0 * self.overruns / max(1, self.ticks + self.overruns)}
+               "overrun_pct": 100.0 * self.overruns / max(1, self.ticks + self.overruns),
+               "cpu_pct": self.cpu_pct()}
         cached = self._dist
         if fresh or cached is None or now_ns - cached[0] >= STATS_EVERY_NS:
             cached = self._dist = (now_ns, self._distributions(m))
         out.update(cached[1])
         return out
+
+    def cpu_pct(self) -> float | None:
+        """The process's CPU time as a % of one CPU between the first tick and the latest CPU_EVERY-th (None before
+        two marks): 100 is a whole CPU, and on this 2-CPU machine 200 is all of it."""
+        wall = self._cpu1[1] - self._cpu0[1]
+        return round(100.0 * (self._cpu1[0] - self._cpu0[0]) / wall, 1) if wall > 0 else None
 
     def _distributions(self, m: int) -> dict:
         ex = np.frombuffer(self.exec, dtype=np.int64)[:m]

@@ -327,6 +327,11 @@ def test_bench_middleware_measures_each_fact_of_the_design_notes():
     assert len(r["liveliness_sigkill_ms"]["ms"]) == 3 and max(r["liveliness_sigkill_ms"]["ms"]) < 15_000
     assert set(r["encode_us"]) == {"struct_codec", "pydantic_json", "stdlib_json"}
     assert r["mcap"]["chunk_256KiB"]["msgs_per_s"] > 0
+    for via in ("zenoh", "unix_socket"):  # both gaps measured; a message costs some CPU, and a round trip two of them
+        for gap in ("gap_0us", "gap_500us"):
+            c = r["cpu_per_message"][via][gap]
+            assert c["round_trips"] > 10 and 0 < c["cpu_us_per_message"] and c["round_trip_us"] > 0
+    assert r["cpu_per_message"]["zenoh"]["gap_500us"]["round_trip_us"] > 500  # the gap is inside the round trip
 
 
 def test_steal_meter_is_the_hosts_share_of_cpu_time_between_start_and_stop(tmp_path, monkeypatch):
@@ -338,12 +343,40 @@ def test_steal_meter_is_the_hosts_share_of_cpu_time_between_start_and_stop(tmp_p
     m = machine.StealMeter().start()
     stat.write_text("cpu  400 0 200 1200 0 0 50 150 0 0\n")  # +1000, +50 stolen
     assert m.stop() == 5.0
+    assert m.busy_pct == 45.0  # user +300, system +100, softirq +50 of 1000; idle and steal are not busy
     stat.write_text("no cpu line\n")
     with machine.StealMeter() as m:
         pass
     assert m.pct is None
     monkeypatch.setattr(machine, "_STAT", tmp_path / "missing")
     assert machine.cpu_times() is None
+
+
+def test_process_cpu_counts_every_thread_of_this_process_against_the_wall_time():
+    """A thread that spins for the whole measurement makes about one CPU (100 %); a sleeping process next to none."""
+    import threading
+
+    from clients.machine import ProcessCpu
+
+    idle = ProcessCpu().start()
+    threading.Event().wait(0.2)
+    assert idle.stop() < 30.0
+    done = threading.Event()
+
+    def spin() -> None:
+        while not done.is_set():
+            pass
+
+    busy = ProcessCpu().start()
+    t = threading.Thread(target=spin)
+    t.start()
+    try:
+        threading.Event().wait(0.3)  # the main thread sleeps: the spinning thread's CPU is what is counted
+        pct = busy.stop()
+    finally:
+        done.set()
+        t.join()
+    assert pct > 50.0
 
 
 def test_the_query_table_names_each_fields_unit():

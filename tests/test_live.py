@@ -32,6 +32,11 @@ def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
     out = tmp_path / "lockstep.mcap"
     res = run_live(scn, lockstep=True, rate_hz=None, out=str(out), duration_s=None, workdir=str(tmp_path))
     assert res["counters"]["timeouts"] == 0 and res["counters"]["commands"] == 500
+    # the CPU budget: the plant's and the load's shares of one CPU and how busy the machine was; the controller's
+    # needs 1025 ticks (it reads its CPU time every 1024), this run has 500
+    cpu = res["cpu"]
+    assert cpu["plant_pct"] > 0 and cpu["load_pct"] > 0 and 0 < cpu["host_busy_pct"] <= 100
+    assert cpu["controller_pct"] is None
     live = read_topic(out, "/plant")
     sim = run(scn).trace
     v_live = np.array([m["v"] for m in live])

@@ -42,3 +42,26 @@ def test_a_status_query_reuses_the_distributions_for_a_while_and_counters_are_al
     assert s.summary(t0 + STATS_EVERY_NS - 1, fresh=True)["exec_us"]["max"] == 900.0  # fresh: now
     s.record(100_000, 950_000)
     assert s.summary(t0 + 2 * STATS_EVERY_NS)["exec_us"]["max"] == 950.0  # old enough: recomputed
+
+
+def test_cpu_pct_is_the_processes_cpu_time_over_the_wall_time_between_ticks(monkeypatch):
+    """Read every 1024 ticks, from the first: a process that used 1 ms of CPU per 2 ms of ticking reports 50 % of one
+    CPU; a pause with no ticks counts from the next mark on; nothing before the second mark."""
+    from service import daemon
+
+    clock = {"cpu": 10.0, "wall": 100.0}
+    monkeypatch.setattr(daemon.time, "process_time", lambda: clock["cpu"])
+    monkeypatch.setattr(daemon.time, "monotonic", lambda: clock["wall"])
+    s = LoopStats(64)
+    s.record(0, 1000)
+    assert s.cpu_pct() is None and s.summary(0, fresh=True)["cpu_pct"] is None
+    for _ in range(1024):  # tick 1025 is the next mark
+        clock["cpu"] += 0.001
+        clock["wall"] += 0.002
+        s.record(100_000, 1000)
+    assert s.cpu_pct() == 50.0
+    clock["wall"] += 10.0  # no ticks for 10 s: not counted until the next mark, which then covers it
+    assert s.cpu_pct() == 50.0
+    for _ in range(1024):
+        s.record(100_000, 1000)
+    assert s.cpu_pct() == round(100.0 * 1.024 / (2.048 + 10.0), 1)
