@@ -3,7 +3,8 @@
 Three processes on loopback: the daemon (sample trigger, no neighbours), a bare echo (returns each
 measurement payload unchanged) and this client, which alternates between the two targets so both see
 the same machine load. Reports both round-trip distributions, their p50/p99 ratios, and the daemon's
-own per-tick execution time: whole, its command put (Zenoh), and the rest (compute).
+own per-tick execution time: whole, its command put (Zenoh), the rest (compute), and of that the control
+computation alone (control: from the accepted sample to the command ready to put).
 """
 
 from __future__ import annotations
@@ -105,7 +106,8 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4, cpus:
     d = json.loads(stats.read_text())["loop"] if stats.exists() else {}
     res = {"bench": "latency", "wait": wait, "cpus": cpus, "round_trips_each": n, "daemon": percentiles(rtt["daemon"]),
            "echo": percentiles(rtt["echo"]), "lost": lost, "daemon_tick_exec_us": d.get("exec_us"),
-           "daemon_tick_compute_us": d.get("compute_us"), "daemon_tick_put_us": d.get("publish_us")}
+           "daemon_tick_compute_us": d.get("compute_us"), "daemon_tick_put_us": d.get("publish_us"),
+           "daemon_tick_control_us": d.get("control_us")}
     res["ratio_p50"] = res["daemon"]["p50_us"] / res["echo"]["p50_us"]
     res["ratio_p99"] = res["daemon"]["p99_us"] / res["echo"]["p99_us"]
     res["host_steal_pct"] = steal.pct

@@ -77,7 +77,7 @@ def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: di
             t0 = now()
             d._tick(payload, t0)
             t1 = now()
-            d.stats.record(0, t1 - t0, d.put_ns)
+            d.stats.record(0, t1 - t0, d.put_ns, d.control_ns)
             times[k] = t1 - t0
         gc.unfreeze()
         st = d.status()
@@ -100,6 +100,7 @@ def bench_tick(scenario_path: str, n: int = 20_000) -> dict:
         loop = st["loop"]
         res[impl] = {**percentiles(times), "core_impl": impl,
                      "compute_p50_us": loop["compute_us"]["p50"], "compute_p99_us": loop["compute_us"]["p99"],
+                     "control_p50_us": loop["control_us"]["p50"], "control_p99_us": loop["control_us"]["p99"],
                      "put_p50_us": loop["publish_us"]["p50"], "put_p99_us": loop["publish_us"]["p99"],
                      "recorder_drops": (st.get("logging") or {}).get("drops"),
                      "loop_delay_measured": st["loop_delay"]["measured_samples"]}

@@ -54,6 +54,9 @@ class LoopStats:
         self.period = array("q", bytes(8 * n))
         self.exec = array("q", bytes(8 * n))
         self.publish = array("q", bytes(8 * n))  # of exec: the command's put (Zenoh's own work on this thread)
+        # of exec: the control computation, from the accepted sample to the command ready to put (reference, core
+        # step, command payload, recorder slot): ros2_control's update() between read() and write(); 0 = none
+        self.control = array("q", bytes(8 * n))
         self.k = 0
         self.ticks = 0
         self.overruns = 0  # whole periods skipped because a tick ran late
@@ -66,11 +69,12 @@ class LoopStats:
         # and at every CPU_EVERY-th since: cpu_pct in summary() is its share of one CPU while ticks came
         self._cpu0 = self._cpu1 = (0.0, 0.0)
 
-    def record(self, period_ns: int, exec_ns: int, publish_ns: int = 0) -> None:
+    def record(self, period_ns: int, exec_ns: int, publish_ns: int = 0, control_ns: int = 0) -> None:
         k = self.k
         self.period[k] = period_ns
         self.exec[k] = exec_ns
         self.publish[k] = publish_ns
+        self.control[k] = control_ns
         self.k = k + 1 if k + 1 < self.n else 0
         self.ticks += 1
         if self.ticks & CPU_EVERY_MASK == 1:  # two clock reads every CPU_EVERY ticks
@@ -111,9 +115,12 @@ class LoopStats:
         ex = np.frombuffer(self.exec, dtype=np.int64)[:m]
         pub = np.frombuffer(self.publish, dtype=np.int64)[:m]
         per = np.frombuffer(self.period, dtype=np.int64)[:m]
+        ctl = np.frombuffer(self.control, dtype=np.int64)[:m]
         out = {}
-        # exec_us: the whole tick; publish_us: its command put; compute_us: the rest (read, checks, core, record)
-        for name, vals in (("period_us", per[per > 0]), ("exec_us", ex), ("publish_us", pub), ("compute_us", ex - pub)):
+        # exec_us: the whole tick; publish_us: its command put; compute_us: the rest (read, checks, core, record);
+        # control_us: of compute, the control computation alone (ticks that computed a command)
+        for name, vals in (("period_us", per[per > 0]), ("exec_us", ex), ("publish_us", pub), ("compute_us", ex - pub),
+                           ("control_us", ctl[ctl > 0])):
             if vals.size:
                 k = [int(0.5 * (vals.size - 1)), int(0.99 * (vals.size - 1))]
                 p50, p99 = np.partition(vals, k)[k]
@@ -173,6 +180,7 @@ class Daemon:
         self.recorder = None
         self._fast = None  # the compiled stepped tick (open: _tick_writer)
         self.put_ns = 0  # the last tick's command put (ns)
+        self.control_ns = 0  # the last tick's control computation (ns; LoopStats.control)
         self._idle = 0
         self.restarts = 0
         self.late_ticks = 0  # ticks at which the core saw its commands not acting in time (late_detect_V)
@@ -357,7 +365,8 @@ class Daemon:
                 self._idle = 0
                 self._tick(s.payload.to_bytes(), start)
             end = now_ns()
-            stats.record(start - prev if prev else 0, end - start, self.put_ns if s is not None else 0)
+            stats.record(start - prev if prev else 0, end - start, self.put_ns if s is not None else 0,
+                         self.control_ns if s is not None else 0)
             prev = start
             nxt += period
             if end > nxt:  # ran into the next period: skip whole periods, count them
@@ -433,7 +442,7 @@ class Daemon:
             t_exec = now_ns()
             self._tick(payload, t_exec)
             end = now_ns()
-            stats.record(start - prev if prev else 0, end - t_exec, self.put_ns)
+            stats.record(start - prev if prev else 0, end - t_exec, self.put_ns, self.control_ns)
             prev = start
             if max_ticks is not None and stats.ticks >= max_ticks:
                 break
@@ -573,7 +582,7 @@ class Daemon:
         return v
 
     def _tick(self, payload: bytes, now: int) -> None:
-        self.put_ns = 0
+        self.put_ns = self.control_ns = 0
         self._poll_neighbours(now)
         fast = self._fast
         # an ordinary next sample passes the compiled check (TickWriter.accept, the same conditions as _checked);
@@ -582,6 +591,7 @@ class Daemon:
         v = fast.accept(payload, self._last_seq, ls[1] if ls else 0.0) if fast is not None else None
         if v is None and (v := self._checked(payload, now)) is None:
             return
+        t_control = _now_ns()
         seq, t = v[0], v[1]
         if self.state == "degraded":
             self.state = "active"
@@ -634,6 +644,7 @@ class Daemon:
                 # meas, z_in and cmd in one ring slot (RingRecorder groups)
                 rec.offer_group(0, t, *v, seq, t, P_in, P_in_dot, stepped, seq, t, du, du_next, limited)
         t_put = _now_ns()
+        self.control_ns = t_put - t_control  # LoopStats "control_us"
         self.cmd_pub.put(cmd)
         self.put_ns = _now_ns() - t_put  # the transport's share of the tick (LoopStats "publish_us")
         self.last_cmd = (seq, t, du, du_next, limited)

@@ -65,3 +65,15 @@ def test_cpu_pct_is_the_processes_cpu_time_over_the_wall_time_between_ticks(monk
     for _ in range(1024):
         s.record(100_000, 1000)
     assert s.cpu_pct() == round(100.0 * 1.024 / (2.048 + 10.0), 1)
+
+
+def test_control_us_is_the_control_computation_of_the_ticks_that_computed_a_command():
+    """A tick that computed no command (a rejected sample: control 0) is not in control_us; the others are, apart
+    from the put and the rest of the tick."""
+    s = LoopStats(100)
+    for k in range(100):
+        s.record(100_000, 50_000, 20_000, 0 if k % 10 == 0 else (3_000 if k < 95 else 9_000))
+    out = s.summary(0, fresh=True)
+    ctl = out["control_us"]
+    assert (ctl["p50"], ctl["max"]) == (3.0, 9.0) and ctl["mean"] == (85 * 3.0 + 5 * 9.0) / 90
+    assert out["compute_us"]["p50"] == 30.0 and out["publish_us"]["p50"] == 20.0
