@@ -30,6 +30,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -251,7 +252,6 @@ def _echo_cpu(send, recv, echo_once, seconds: float) -> dict:
     """Round trips through an echo on a second thread of this process, back to back and PUT_GAP_S apart: the
     process's CPU time (every thread: both ends, and Zenoh's own) per message carried, and the wall time per round
     trip. ``echo_once`` receives one message and sends it back (it raises once the transport is closed)."""
-    import threading
 
     def echo() -> None:
         try:

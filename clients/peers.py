@@ -347,13 +347,17 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
     last: tuple[float, float, float] | None = None
     try:
         pub = publisher(session, key(cfg.prefix, cfg.id, "z"))
-        t_meas = key(cfg.prefix, cfg.plant_id, "meas")
         lockstep = cfg.pacing == "lockstep"
         # lockstep: every plant sample, queued by a callback (one message each); realtime: only the newest, in a
         # ring that Zenoh fills without Python, read once per message sent (a callback per sample took a quarter of a
         # CPU at 2-10 kHz for a 200 Hz publisher: README, "The CPU budget")
-        sub, meas_q = (None, None) if not cfg.plant_id else queued(session, t_meas) if lockstep else \
-            (latest(session, t_meas), None)
+        sub, meas_q = None, None
+        if cfg.plant_id:
+            t_meas = key(cfg.prefix, cfg.plant_id, "meas")
+            if lockstep:
+                sub, meas_q = queued(session, t_meas)
+            else:
+                sub = latest(session, t_meas)
         rec, z_topic = None, f"{cfg.prefix}/{cfg.id}/z"
         if cfg.log_dir:
             from datetime import UTC, datetime

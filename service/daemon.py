@@ -66,7 +66,7 @@ class LoopStats:
         self.window_exec_max = self.window_period_max = 0  # since the last loop record
         self._dist: tuple[int, dict] | None = None  # (when, distributions): see summary
         # the process's CPU time (all threads: the loop, Zenoh's, queries) and the wall time (s), at the first tick
-        # and at every CPU_EVERY-th since: cpu_pct in summary() is its share of one CPU while ticks came
+        # and every CPU_EVERY_MASK + 1 ticks since: cpu_pct in summary() is its share of one CPU while ticks came
         self._cpu0 = self._cpu1 = (0.0, 0.0)
 
     def record(self, period_ns: int, exec_ns: int, publish_ns: int = 0, control_ns: int = 0) -> None:
@@ -77,7 +77,7 @@ class LoopStats:
         self.control[k] = control_ns
         self.k = k + 1 if k + 1 < self.n else 0
         self.ticks += 1
-        if self.ticks & CPU_EVERY_MASK == 1:  # two clock reads every CPU_EVERY ticks
+        if self.ticks & CPU_EVERY_MASK == 1:  # two clock reads every CPU_EVERY_MASK + 1 ticks
             mark = (time.process_time(), time.monotonic())
             if self.ticks == 1:
                 self._cpu0 = mark
@@ -106,8 +106,9 @@ class LoopStats:
         return out
 
     def cpu_pct(self) -> float | None:
-        """The process's CPU time as a % of one CPU between the first tick and the latest CPU_EVERY-th (None before
-        two marks): 100 is a whole CPU, and on this 2-CPU machine 200 is all of it."""
+        """The process's CPU time as a % of one CPU between the first tick's mark and the latest (one every
+        CPU_EVERY_MASK + 1 ticks; None before two marks): 100 is a whole CPU, and on this 2-CPU machine 200 is all
+        of it."""
         wall = self._cpu1[1] - self._cpu0[1]
         return round(100.0 * (self._cpu1[0] - self._cpu0[0]) / wall, 1) if wall > 0 else None
 
