@@ -13,7 +13,7 @@ from mcap.reader import make_reader
 
 from clients.live import configs_from_scenario, run_live, wait_until
 from clients.peers import run_load
-from clients.query import QueryError, ask, query
+from clients.query import QueryError, query
 from schemas.codec import CMD, MEAS
 from schemas.component import ComponentConfig, LoadPeerConfig, ZenohConfig, config_from_dict
 from schemas.scenario import load_scenario
@@ -402,31 +402,66 @@ def test_a_realtime_plant_starts_its_clock_at_the_controllers_first_answer():
     assert answered_0 and arrivals[1] >= answered_0[0]  # sample 1 only after the answer to sample 0
 
 
+QUERIER = """
+import json, sys, time
+from clients.query import ask
+from schemas.component import ZenohConfig
+from service.bus import open_session
+s = open_session(ZenohConfig(mode="peer", connect=[sys.argv[1]]))
+print("ready", flush=True)
+for line in sys.stdin:  # a round of 20 queries per line, at an operator's or a dashboard's pace (100 a second at most)
+    answered = 0
+    for k in range(20):
+        answered += bool(ask(s, "energyctl", "source", "status" if k % 3 else "config", timeout_s=5.0))
+        time.sleep(0.01)
+    print(json.dumps({"answered": answered}), flush=True)
+s.close()
+"""
+
+
 def test_queries_are_answered_while_the_clock_loop_holds_its_rate(daemon_and_load):
-    """Status and config queries are served on their own thread: 60 of them at up to 100 a second, every one
-    answered, while the 2 kHz clock loop keeps its periods (a period is either ticked or counted as an overrun, so
-    ticks + overruns follow the clock; the overruns stay a small share). Here the querier, the load and the daemon
-    share one process and its GIL; back to back, such queries overran 7-31 % of the periods."""
+    """Status and config queries are served on their own thread: 60 of them at up to 100 a second from another
+    process, every one answered, while the 2 kHz clock loop keeps its periods. A period is either ticked or counted as
+    an overrun, so ticks + overruns follow the clock; and the share of overruns while queries come is compared with
+    the same loop's in quiet windows of the same length alternated with them (on this machine a quiet 2 kHz loop
+    overruns 0.2-5 % of such a window's periods). From the daemon's own process, sharing its GIL, queries back to back
+    overran 7-31 % (README)."""
+    import subprocess
+    import sys
+
+    from clients.live import child_env
+
     d, ep, _stop = daemon_and_load
     assert wait_until(lambda: d.stats.ticks > 200, 10.0)
-    from service.bus import open_session
 
-    s = open_session(zc(ep))
-    try:
+    def window(run) -> tuple[int, int, float]:
+        """(ticks, overruns, periods of the clock) while run() runs."""
         ticks0, over0, t0 = d.stats.ticks, d.stats.overruns, time.monotonic()
-        answered = 0
-        for k in range(60):
-            st = ask(s, "energyctl", "source", "status" if k % 3 else "config", timeout_s=5.0)
-            answered += bool(st)
-            time.sleep(0.01)  # an operator's or a dashboard's pace: 100 queries a second at most
+        run()
         elapsed = time.monotonic() - t0
-        ticks, over = d.stats.ticks - ticks0, d.stats.overruns - over0
+        return d.stats.ticks - ticks0, d.stats.overruns - over0, elapsed * d.cfg.loop.rate_hz
+
+    p = subprocess.Popen([sys.executable, "-c", QUERIER, ep], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, env=child_env(), cwd=ROOT)
+    answers, busy, quiet = [], [], []
+    try:
+        assert p.stdout.readline().strip() == "ready", p.stderr.read()
+        for _ in range(3):
+            def round_of_queries() -> None:
+                p.stdin.write("go\n")
+                p.stdin.flush()
+                answers.append(p.stdout.readline())
+
+            busy.append(window(round_of_queries))
+            quiet.append(window(lambda: threading.Event().wait(busy[-1][2] / d.cfg.loop.rate_hz)))
     finally:
-        s.close()
-    periods = elapsed * d.cfg.loop.rate_hz
-    assert answered == 60
-    assert ticks + over == pytest.approx(periods, rel=0.05, abs=3)  # the loop ran on its clock all along
-    assert over <= 0.05 * periods, (ticks, over, periods)
+        p.kill()
+        p.communicate(timeout=10)
+    assert sum(json.loads(a)["answered"] for a in answers) == 60
+    for ticks, over, periods in busy + quiet:
+        assert ticks + over == pytest.approx(periods, rel=0.05, abs=3)  # the loop ran on its clock all along
+    share = [sum(w[1] for w in ws) / sum(w[2] for w in ws) for ws in (busy, quiet)]
+    assert share[0] <= share[1] + 0.05, (busy, quiet)  # queries add less than 5 % of the periods to the overruns
 
 
 def test_a_config_set_changes_the_gain_from_the_next_tick_on(daemon_by_hand):
