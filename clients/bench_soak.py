@@ -1,7 +1,11 @@
-"""energyctl bench soak: daemon (clock loop, recording), realtime plant and load, status queries at 100 Hz.
+"""energyctl bench soak: the realtime stack (daemon recording, plant, load) for minutes, status queries at 100 Hz.
 
-Reports the daemon's resident memory over time (growth and slope after a warm-up), the loop's
-overruns, the recorder's drops, and how many status queries were answered.
+The stack is the one ``bench realtime`` and ``demo --realtime`` run (the same settings, an 8 ms loop-delay
+schedule), so that the soak measures a daemon that regulates: until 2026-12-02 it ran a clock-triggered loop with
+the paper's gain, the plant diverged in the first second, and the soak measured a daemon holding every sample as
+out of range. Reports the daemon's resident memory over time (growth and slope after a warm-up), the loop's
+overruns, the recorder's drops, how many status queries were answered, and whether v stayed regulated (issue 3's
+criteria for the run, ``bench_realtime.judge``).
 """
 
 from __future__ import annotations
@@ -20,7 +24,8 @@ from schemas.component import ZenohConfig
 from schemas.scenario import load_scenario
 from service.bus import free_tcp_port, key, open_session
 
-from .live import Processes, _toml, configs_from_scenario, wait_until
+from .bench_realtime import BAND_PCT, judge, schedule_samples
+from .live import Processes, _last_json, _toml, configs_from_scenario, wait_until
 from .machine import StealMeter
 
 EMBEDDED = Path(__file__).parent / "embedded" / "demo.toml"
@@ -46,20 +51,35 @@ def half_growth(t: np.ndarray, m: np.ndarray, warmup_s: float, half: int) -> flo
     return float(m[hi] - m[lo])
 
 
-def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.0, warmup_s: float = 30.0,
-               record: bool = True, cpus: dict[str, list[int]] | None = None) -> dict:
-    seconds = minutes * 60.0
-    warmup_s = min(warmup_s, seconds / 3)
-    tmp = Path(tempfile.mkdtemp(prefix="energyctl-soak-"))
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    scn = load_scenario(EMBEDDED, ["timing.plant_step_s=5e-5"])
-    comp, plant, load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=rate_hz,
-                                              out=str(tmp / "plant.mcap"), duration_s=seconds + 5.0, cpus=cpus)
-    comp["loop"] = {"rate_hz": rate_hz, "trigger": "clock"}
+def soak_configs(endpoint: str, log_dir: Path, seconds: float, rate_hz: float, sets: list[str] | None = None,
+                 delay: str = "8ms", record: bool = True, cpus: dict[str, list[int]] | None = None
+                 ) -> tuple[dict, dict, dict]:
+    """The soak's daemon, plant and load configs: ``bench realtime``'s stack for the embedded scenario (with
+    ``sets``) at ``rate_hz`` and the ``delay`` schedule, the daemon recording to ``log_dir`` in files of a minute,
+    the plant running ``seconds`` and writing no trace, the load outliving it."""
+    scn = load_scenario(EMBEDDED, sets or [])
+    comp, plant, load = configs_from_scenario(scn, endpoint, lockstep=False, rate_hz=rate_hz,
+                                              controller_delay=schedule_samples(delay, rate_hz),
+                                              out=str(log_dir / "plant.mcap"), duration_s=seconds, cpus=cpus)
     comp["log_rotate_s"] = 60.0
     if not record:
         comp.pop("log_dir", None)
     plant["out"] = None
+    load["duration_s"] = seconds + 60.0  # stopped with the daemon, after the plant
+    return comp, plant, load
+
+
+def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.0, warmup_s: float = 30.0,
+               record: bool = True, cpus: dict[str, list[int]] | None = None, sets: list[str] | None = None,
+               delay: str = "8ms", progress=sys.stderr) -> dict:
+    """sets: scenario overrides (the CLI passes the realtime demo's, then the user's --set); delay: the loop-delay
+    schedule (samples, or a time as in ``bench realtime --delays``)."""
+    seconds = minutes * 60.0
+    warmup_s = min(warmup_s, seconds / 3)
+    tmp = Path(tempfile.mkdtemp(prefix="energyctl-soak-"))
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    comp, plant, load = soak_configs(ep, tmp, seconds, rate_hz, sets, delay, record, cpus)
+    d_samples = comp["delay_samples"]
     for name, d in (("component", comp), ("plant", plant), ("load", load)):
         (tmp / f"{name}.toml").write_text(_toml(d))
     env = dict(os.environ)
@@ -68,11 +88,11 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
     rss: list[tuple[float, int]] = []
     queries = {"sent": 0, "answered": 0, "failed": 0}
     steal = None
-    with Processes() as procs:
+    with Processes(out_dir=tmp) as procs:
         d = procs.start("daemon", ["run", "--config", str(tmp / "component.toml"), "--stats-out", str(stats)],
                         env=env)
         procs.start("load", ["load", "--config", str(tmp / "load.toml")], env=env)
-        procs.start("plant", ["plant", "--config", str(tmp / "plant.toml"), "--json"], env=env)
+        pp = procs.start("plant", ["plant", "--config", str(tmp / "plant.toml"), "--json"], env=env)
         session = open_session(ZenohConfig(mode="peer", connect=[ep]))
         stop = threading.Event()
 
@@ -88,9 +108,9 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
                     queries["answered" if ok else "failed"] += 1
                 except Exception:  # noqa: BLE001 - counted
                     queries["failed"] += 1
-                delay = nxt - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
+                delay_s = nxt - time.monotonic()
+                if delay_s > 0:
+                    time.sleep(delay_s)
 
         try:
             if not wait_until(lambda: any(r.ok is not None for r in
@@ -103,28 +123,35 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             steal = StealMeter().start()
             t0 = time.monotonic()
             last_report = t0
-            while time.monotonic() - t0 < seconds:
-                time.sleep(1.0)
+            # until the plant has run its samples and said how it went (its metrics over the whole run take a few
+            # seconds at the end); the RSS of the daemon once a second meanwhile
+            while pp.poll() is None and time.monotonic() - t0 < seconds + 120.0:
+                if stop.wait(1.0):
+                    break
                 r = rss_kib(d.pid)
-                if r is not None:
-                    rss.append((time.monotonic() - t0, r))
-                if time.monotonic() - last_report >= 30:
+                el = time.monotonic() - t0
+                if r is not None and el <= seconds:
+                    rss.append((el, r))
+                if progress is not None and time.monotonic() - last_report >= 30:
                     last_report = time.monotonic()
-                    sys.stderr.write(f"\rsoak {time.monotonic() - t0:.0f}/{seconds:.0f} s, daemon RSS {r} KiB   ")
-                    sys.stderr.flush()
+                    progress.write(f"\rsoak {min(el, seconds):.0f}/{seconds:.0f} s, daemon RSS {r} KiB   ")
+                    progress.flush()
             steal.stop()
             stop.set()
             if query_hz > 0:
                 qt.join(2.0)
         finally:
             session.close()
-        procs.stop_all(timeout_s=10.0)
-    sys.stderr.write("\n")
+        outputs = procs.stop_all(timeout_s=10.0)
+    if progress is not None:
+        progress.write("\n")
     status = json.loads(stats.read_text()) if stats.exists() else {}
     t = np.array([a for a, _ in rss])
     m = np.array([b for _, b in rss], dtype=float)
     after = t >= warmup_s
     slope = float(np.polyfit(t[after], m[after], 1)[0]) if after.sum() > 2 else None
+    plant_res = _last_json(outputs.get("plant", (None, "", ""))[1])
+    rr = judge({**plant_res, "daemon": status}) if plant_res.get("metrics") else {}
     loop = status.get("loop", {})
     logging = status.get("logging") or {}
     for p in tmp.glob("*.mcap"):
@@ -139,6 +166,9 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             # grows in the first and levels off
             "rss_growth_kib_first_half": half_growth(t, m, warmup_s, 0),
             "rss_growth_kib_second_half": half_growth(t, m, warmup_s, 1),
+            # where it levels off: the resident size at each whole minute
+            "rss_kib_by_minute": [int(m[np.searchsorted(t, 60.0 * j)]) for j in range(1, int(t[-1] // 60) + 1)]
+            if len(t) else [],
             "loop_ticks": loop.get("ticks"), "overruns": loop.get("overruns"), "overrun_pct": loop.get("overrun_pct"),
             "no_new_sample": loop.get("no_new_sample"), "missing_samples": loop.get("missing_samples"),
             "loop_exec_us": loop.get("exec_us"), "loop_publish_us": loop.get("publish_us"),
@@ -147,4 +177,12 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             "recorder_written": logging.get("written"), "recorder_drops": logging.get("drops"),
             "recorder_state": logging.get("state"), "queries": queries,
             "rejected": status.get("rejected"), "final_state": status.get("state"),
+            # the stack's regulation over the whole run, by issue 3's criteria (None: the plant gave no result)
+            "delay_samples": d_samples,
+            "regulated": bool(rr and not rr["diverged"] and rr["v_dev_after_50ms_pct"] is not None
+                              and rr["v_dev_after_50ms_pct"] <= BAND_PCT),
+            **{k: rr.get(k) for k in ("v_dev_after_50ms_pct", "diverged", "missed_or_late_pct",
+                                      "plant_late_samples_pct")},
+            "latency_us": plant_res.get("latency_us"), "cpu": plant_res.get("cpu"),
+            "plant_error": None if plant_res else outputs.get("plant", (None, "", ""))[2][-800:],
             "host_steal_pct": steal.pct if steal is not None else None}

@@ -308,7 +308,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "soak":
         from .bench_soak import bench_soak
 
-        res = bench_soak(args.minutes, rate_hz=args.rate, cpus=args.cpus)
+        # the realtime stack of demo --realtime and bench realtime, under the user's --set
+        res = bench_soak(args.minutes, rate_hz=args.rate, cpus=args.cpus,
+                         sets=[*DEMO_REALTIME_SETS, *(args.set or [])])
     elif args.what == "recorder":
         from service.priority import set_nice
 
@@ -704,10 +706,11 @@ def build_parser() -> argparse.ArgumentParser:
                                      "'latency' (daemon round trip vs bare Zenoh echo), "
                                      "'recorder' (10 kHz stream set vs bare writer), 'replay' (a long 10 kHz "
                                      "daemon log replayed from its tick index and from JSON), 'realtime' (the "
-                                     "highest control rate meeting issue 3's criteria), 'soak' (RSS, drops, "
-                                     "overruns over minutes), 'recovery' (kill -9 plant / neighbour, time "
-                                     "back to +-2 %%), 'wake' (how late a 60 us timed wait ends at the "
-                                     "kernel's default timer slack and at timer_slack_ns's), 'middleware' (the "
+                                     "highest control rate meeting issue 3's criteria), 'soak' (the realtime "
+                                     "stack for minutes: RSS, drops, overruns, regulation), 'recovery' (kill -9 "
+                                     "plant / neighbour, time back to +-2 %%), 'wake' (how late a 60 us timed "
+                                     "wait ends at the kernel's default timer slack and at timer_slack_ns's), "
+                                     "'middleware' (the "
                                      "design notes' Zenoh and MCAP facts, re-measured)")
     b.add_argument("what", choices=["sim", "core", "tick", "latency", "recorder", "replay", "realtime", "soak",
                                     "recovery", "wake", "middleware"])
@@ -719,7 +722,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "at 2 kHz); the controller answers up to that many queued samples after a stall (default "
                         "1,2,3,8ms)")
     b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
-    b.add_argument("--rate", type=float, default=10000.0, help="soak: loop and sample rate, Hz (default %(default)s)")
+    b.add_argument("--rate", type=float, default=10000.0,
+                   help="soak: loop and sample rate, Hz (default %(default)s); the stack is bench realtime's (its "
+                        "--set defaults, an 8 ms loop-delay schedule), with status queries at 100 Hz")
     b.add_argument("--seconds", type=float, default=None,
                    help="recorder: paced run length (default 10); replay: log length (default 10); realtime: each "
                         "run (default 2)")

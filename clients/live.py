@@ -236,17 +236,30 @@ class Processes:
     """Child processes that are stopped (SIGTERM, then SIGKILL) whatever happens, including a SIGTERM to
     this process (in the main thread it becomes SystemExit, so the ``with`` block still cleans up)."""
 
-    def __init__(self):
+    def __init__(self, out_dir: Path | None = None):
+        """out_dir: each child writes its stdout and stderr to files there (NAME.out, NAME.err) instead of pipes;
+        for runs of minutes, where a pipe that nobody reads fills at 64 KiB and then blocks the child's next
+        write (a daemon thread printing a line a window would stall after about ten minutes)."""
         self.procs: list[tuple[str, subprocess.Popen]] = []
+        self.out_dir = out_dir
         self._old_term = None
         if threading.current_thread() is threading.main_thread():
             self._old_term = signal.signal(signal.SIGTERM, _exit_on_term)
 
     def start(self, name: str, args: list[str], **kw) -> subprocess.Popen:
-        p = subprocess.Popen([sys.executable, "-m", "clients.cli", *args], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True, **kw)
+        cmd = [sys.executable, "-m", "clients.cli", *args]
+        if self.out_dir is None:
+            p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+        else:
+            with open(self.out_dir / f"{name}.out", "w") as so, open(self.out_dir / f"{name}.err", "w") as se:
+                p = subprocess.Popen(cmd, stdout=so, stderr=se, text=True, **kw)
         self.procs.append((name, p))
         return p
+
+    def _outputs(self, name: str, so: str | None, se: str | None) -> tuple[str, str]:
+        if self.out_dir is None:
+            return so or "", se or ""
+        return tuple((self.out_dir / f"{name}.{ext}").read_text(errors="replace") for ext in ("out", "err"))
 
     def stop_all(self, timeout_s: float = 8.0) -> dict[str, tuple[int, str, str]]:
         """SIGTERM all, wait up to timeout_s in total, SIGKILL the rest. Never blocks on a pipe that a
@@ -269,7 +282,7 @@ class Processes:
                             f.close()
                     p.wait(5.0)
                     so, se = "", ""
-            out[name] = (p.returncode, so, se)
+            out[name] = (p.returncode, *self._outputs(name, so, se))
         return out
 
     def __enter__(self):

@@ -9,6 +9,7 @@ from conftest import SCENARIOS
 from mcap.reader import make_reader
 
 from clients.cli import main
+from schemas.scenario import load_scenario
 
 CONST = str(SCENARIOS / "paper-constant-load.toml")
 
@@ -413,3 +414,23 @@ def test_the_soak_tells_a_leak_from_an_allocator_warming_up():
     assert half_growth(t, leak, 30.0, 0) == pytest.approx(half_growth(t, leak, 30.0, 1), rel=0.02)
     assert half_growth(t, warming, 30.0, 0) > 300 and half_growth(t, warming, 30.0, 1) == 0.0
     assert half_growth(t[:2], leak[:2], 30.0, 0) is None
+
+
+def test_the_soak_runs_the_stack_that_bench_realtime_judges(tmp_path):
+    """Until 2026-12-02 the soak built its own loop (a clock trigger and the paper's gain, no loop-delay schedule):
+    its plant diverged within the first second, and ten minutes measured a daemon holding every sample as out of
+    range. The soak now runs bench realtime's stack for the same scenario, rate and schedule."""
+    from clients.bench_realtime import schedule_samples
+    from clients.bench_soak import EMBEDDED, soak_configs
+    from clients.cli import DEMO_REALTIME_SETS
+    from clients.live import configs_from_scenario
+
+    comp, plant, load = soak_configs("tcp/127.0.0.1:1", tmp_path, 600.0, 3000.0, DEMO_REALTIME_SETS)
+    ref, ref_plant, _ = configs_from_scenario(load_scenario(EMBEDDED, DEMO_REALTIME_SETS), "tcp/127.0.0.1:1",
+                                              False, 3000.0, schedule_samples("8ms", 3000.0), None, 600.0)
+    assert comp["loop"] == ref["loop"] and comp["loop"]["trigger"] == "sample"
+    assert comp["controller"] == ref["controller"] and comp["controller"]["K_per_s"] == 1500.0
+    assert comp["delay_samples"] == ref["delay_samples"] == 24
+    assert {k: v for k, v in plant.items() if k != "out"} == {k: v for k, v in ref_plant.items() if k != "out"}
+    assert plant["out"] is None and comp["log_dir"] == str(tmp_path) and load["duration_s"] > plant["duration_s"]
+    assert "log_dir" not in soak_configs("tcp/127.0.0.1:1", tmp_path, 60.0, 3000.0, record=False)[0]
