@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import tempfile
 import threading
@@ -154,8 +155,7 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
     rr = judge({**plant_res, "daemon": status}) if plant_res.get("metrics") else {}
     loop = status.get("loop", {})
     logging = status.get("logging") or {}
-    for p in tmp.glob("*.mcap"):
-        os.unlink(p)
+    shutil.rmtree(tmp, ignore_errors=True)  # the logs (GBs at 10 kHz), configs and the children's output
     return {"bench": "soak", "minutes": minutes, "rate_hz": rate_hz, "query_hz": query_hz, "warmup_s": warmup_s,
             "cpus": cpus,
             "rss_kib_after_warmup": float(m[after][0]) if after.any() else None,
