@@ -418,7 +418,7 @@ def test_the_soak_tells_a_leak_from_an_allocator_warming_up():
 
 def test_the_soak_runs_the_stack_that_bench_realtime_judges(tmp_path):
     """Until 2026-12-02 the soak built its own loop (a clock trigger and the paper's gain, no loop-delay schedule):
-    its plant diverged within the first second, and ten minutes measured a daemon holding every sample as out of
+    its plant diverged within the first seconds, and ten minutes measured a daemon holding every sample as out of
     range. The soak now runs bench realtime's stack for the same scenario, rate and schedule."""
     from clients.bench_realtime import schedule_samples
     from clients.bench_soak import EMBEDDED, soak_configs

@@ -503,8 +503,8 @@ def test_a_config_set_changes_the_gain_from_the_next_tick_on(daemon_by_hand):
 def test_a_short_soak_regulates_answers_every_query_and_loses_no_record():
     """bench soak for 6 s at 3 kHz (the highest rate bench realtime found here): the plant reports its regulation,
     v stays near v_ref, every status query is answered, the recorder drops nothing and nothing is rejected. The
-    soak's former stack (clock trigger, one sample of delay, the paper's gain) diverged at this rate within a
-    second in every run, and the daemon rejected every later sample as out of range."""
+    soak's former stack (clock trigger, one sample of delay, the paper's gain) diverged at this rate within
+    seconds in every run, and the daemon rejected every later sample as out of range."""
     from clients.bench_soak import bench_soak
     from clients.cli import DEMO_REALTIME_SETS
 
