@@ -65,6 +65,7 @@ class LoopStats:
         self.lockstep_timeouts = 0
         self.window_exec_max = self.window_period_max = 0  # since the last loop record
         self._dist: tuple[int, dict] | None = None  # (when, distributions): see summary
+        self._scratch: np.ndarray | None = None  # the distributions' working ring (_distributions)
         # the process's CPU time (all threads: the loop, Zenoh's, queries) and the wall time (s), at the first tick
         # and every CPU_EVERY_MASK + 1 ticks since: cpu_pct in summary() is its share of one CPU while ticks came
         self._cpu0 = self._cpu1 = (0.0, 0.0)
@@ -113,6 +114,12 @@ class LoopStats:
         return round(100.0 * (self._cpu1[0] - self._cpu0[0]) / wall, 1) if wall > 0 else None
 
     def _distributions(self, m: int) -> dict:
+        """mean, p50, p99 and max (us) of each ring over its m filled ticks, computed in one scratch ring made once:
+        numpy's partition and masks made 800 KB temporaries for each distribution at 100 000 ticks, 3 MB per
+        recompute, which glibc served from the querying thread's arena once its mmap threshold had risen (README,
+        "The soak")."""
+        if self._scratch is None:
+            self._scratch = np.empty(self.n, dtype=np.int64)
         ex = np.frombuffer(self.exec, dtype=np.int64)[:m]
         pub = np.frombuffer(self.publish, dtype=np.int64)[:m]
         per = np.frombuffer(self.period, dtype=np.int64)[:m]
@@ -120,13 +127,23 @@ class LoopStats:
         out = {}
         # exec_us: the whole tick; publish_us: its command put; compute_us: the rest (read, checks, core, record);
         # control_us: of compute, the control computation alone (ticks that computed a command)
-        for name, vals in (("period_us", per[per > 0]), ("exec_us", ex), ("publish_us", pub), ("compute_us", ex - pub),
-                           ("control_us", ctl[ctl > 0])):
-            if vals.size:
-                k = [int(0.5 * (vals.size - 1)), int(0.99 * (vals.size - 1))]
-                p50, p99 = np.partition(vals, k)[k]
-                out[name] = {"mean": float(vals.mean()) / 1e3, "p50": float(p50) / 1e3, "p99": float(p99) / 1e3,
-                             "max": float(vals.max()) / 1e3}
+        for name, src, positive in (("period_us", per, True), ("exec_us", ex, False), ("publish_us", pub, False),
+                                    ("compute_us", None, False), ("control_us", ctl, True)):
+            vals = self._scratch[:m]
+            if src is None:
+                np.subtract(ex, pub, out=vals)
+            else:
+                vals[:] = src
+            # positive: only the entries > 0 count (0: the first tick's period, a tick with no command). The values
+            # are never negative, so the z zeros sort first, and the positives' ranks are z on (no mask, no copy)
+            n = int(np.count_nonzero(vals)) if positive else m
+            if n:
+                z = m - n
+                k = [z + int(0.5 * (n - 1)), z + int(0.99 * (n - 1))]
+                mean, top = float(vals.sum()) / n, float(vals.max())
+                vals.partition(k)  # in place, in the scratch ring
+                out[name] = {"mean": mean / 1e3, "p50": float(vals[k[0]]) / 1e3, "p99": float(vals[k[1]]) / 1e3,
+                             "max": top / 1e3}
         return out
 
 
