@@ -34,13 +34,15 @@ def install_stop_handlers(stop: threading.Event) -> None:
 
 
 def start_process(cfg, command: str) -> threading.Event:
-    """First thing in energyctl run/plant/load: the stop event, its signal handlers, and the configured priority
-    and timer slack (before any thread exists, so that Zenoh's threads and spawned processes inherit them)."""
-    from service.priority import set_cpus, set_nice, set_timer_slack
+    """First thing in energyctl run/plant/load: the stop event, its signal handlers, and the configured priority,
+    timer slack and mmap threshold (before any thread exists, so that Zenoh's threads and spawned processes inherit
+    them)."""
+    from service.priority import set_cpus, set_mmap_threshold, set_nice, set_timer_slack
 
     stop = threading.Event()
     install_stop_handlers(stop)
-    for refused in (set_cpus(cfg.cpus), set_nice(cfg.nice), set_timer_slack(cfg.timer_slack_ns)):
+    for refused in (set_cpus(cfg.cpus), set_nice(cfg.nice), set_timer_slack(cfg.timer_slack_ns),
+                    set_mmap_threshold(cfg.malloc_mmap_threshold_bytes)):
         if refused:
             print(f"energyctl {command}: {refused}", file=sys.stderr, flush=True)
     return stop

@@ -96,6 +96,11 @@ class Named(Strict):
                                   "on purpose, ns; Linux's default is 50 000, half a period at 10 kHz. Set like nice, "
                                   "before anything starts; 0 leaves the inherited value. Its recorder and forecast "
                                   "processes go back to 50 000 (service.priority)")
+    malloc_mmap_threshold_bytes: Annotated[int, Field(ge=0, le=1 << 30)] = Field(
+        default=131072, description="glibc: blocks of this size or more get their own mapping, returned to the "
+                                    "system when freed, and the threshold stays fixed (glibc raises it to each such "
+                                    "block freed, up to 32 MiB, after which large temporaries stay resident in "
+                                    "thread arenas); 0 leaves glibc's dynamic threshold. Set before anything starts")
     cpus: CpuList = Field(
         default=None, description="CPUs the whole process may run on (sched_setaffinity), Zenoh's threads included, "
                                   "set before anything starts; None = any. A process kept on one CPU hands work "

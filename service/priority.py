@@ -96,3 +96,23 @@ def set_cpus(cpus: list[int] | None) -> str | None:
     except OSError as e:
         return f"cannot keep to CPUs {cpus}: {e.strerror}"
     return None
+
+
+_M_MMAP_THRESHOLD = -3  # malloc.h
+
+
+def set_mmap_threshold(nbytes: int | None) -> str | None:
+    """glibc: serve every block of ``nbytes`` or more by its own mapping, returned to the system when freed, and keep
+    that threshold fixed (None or 0: leave glibc's dynamic one, which rises to the size of each such block freed, up
+    to 32 MiB; from then on large temporaries come from the thread arenas and their pages stay resident). Measured
+    (README, "The soak"): with it, the daemon's resident size is about 4 MB lower and grows less in a soak. Returns a
+    one-line reason when the C library has no mallopt or refused, else None. Needs no privilege."""
+    if not nbytes:
+        return None
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return f"cannot fix the mmap threshold at {nbytes} B: no mallopt in this C library"
+    if mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(nbytes)) != 1:
+        return f"cannot fix the mmap threshold at {nbytes} B: mallopt refused"
+    return None
