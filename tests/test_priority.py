@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import platform
 import subprocess
 import sys
 
+import pytest
 from conftest import ROOT, SCENARIOS
 
 from schemas.codec import MEAS
@@ -197,3 +199,39 @@ def test_realtime_stacks_take_cpus_per_role():
     comp, plant, load = configs_from_scenario(load_scenario(SCENARIOS / "paper-varying-load.toml"),
                                               "tcp/127.0.0.1:1", False, 1000.0, cpus=cpus)
     assert comp["cpus"] == [1] and plant["cpus"] == [0, 1] and "cpus" not in load
+
+
+MMAP_PROBE = """
+import ctypes, sys
+from service.priority import set_mmap_threshold
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = MallInfo2
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = [ctypes.c_void_p]
+print(set_mmap_threshold(int(sys.argv[1])))
+big = libc.malloc(4 << 20)
+libc.free(big)  # glibc's dynamic threshold rises to 4 MiB here
+before = libc.mallinfo2().hblks
+block = libc.malloc(1 << 20)
+print(libc.mallinfo2().hblks - before)  # 1: the block has its own mapping; 0: it came from an arena
+libc.free(block)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc", reason="glibc only")
+def test_a_fixed_mmap_threshold_keeps_large_blocks_out_of_the_arenas():
+    """glibc raises its mmap threshold to the size of each mapped block freed; after a 4 MiB block, a 1 MiB one comes
+    from an arena (and its pages stay resident). Fixed at 128 KiB, the 1 MiB block gets its own mapping, returned to
+    the system when freed. 0 leaves glibc's behaviour."""
+    def probe(nbytes: int) -> list[str]:
+        out = subprocess.run([sys.executable, "-c", MMAP_PROBE, str(nbytes)], capture_output=True, text=True,
+                             timeout=30, cwd=ROOT, check=True)
+        return out.stdout.split()
+
+    assert probe(128 * 1024) == ["None", "1"]
+    assert probe(0) == ["None", "0"]
