@@ -34,9 +34,9 @@ def install_stop_handlers(stop: threading.Event) -> None:
 
 
 def start_process(cfg, command: str) -> threading.Event:
-    """First thing in energyctl run/plant/load: the stop event, its signal handlers, and the configured priority,
-    timer slack and mmap threshold (before any thread exists, so that Zenoh's threads and spawned processes inherit
-    them)."""
+    """First thing in energyctl run/plant/load: the stop event, its signal handlers, and the configured CPUs,
+    priority and timer slack (before any thread exists, so that Zenoh's threads and spawned processes inherit them)
+    and mmap threshold (this process's allocator: before Zenoh's threads allocate)."""
     from service.priority import set_cpus, set_mmap_threshold, set_nice, set_timer_slack
 
     stop = threading.Event()

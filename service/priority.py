@@ -31,13 +31,18 @@ DEFAULT_TIMER_SLACK_NS = 50_000  # the kernel's default for a normal thread
 _PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30  # linux/prctl.h
 
 
-def _prctl():
+def _libc(name: str):
+    """The C library's function ``name`` (errno kept for ctypes.get_errno), None off Linux or where it has none."""
     if not sys.platform.startswith("linux"):
         return None
     try:
-        return ctypes.CDLL(None, use_errno=True).prctl
+        return getattr(ctypes.CDLL(None, use_errno=True), name)
     except (OSError, AttributeError):
         return None
+
+
+def _prctl():
+    return _libc("prctl")
 
 
 def timer_slack_ns() -> int | None:
@@ -109,10 +114,9 @@ def set_mmap_threshold(nbytes: int | None) -> str | None:
     one-line reason when the C library has no mallopt or refused, else None. Needs no privilege."""
     if not nbytes:
         return None
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return f"cannot fix the mmap threshold at {nbytes} B: no mallopt in this C library"
+    mallopt = _libc("mallopt")
+    if mallopt is None:
+        return f"cannot fix the mmap threshold at {nbytes} B: no mallopt on {sys.platform}"
     if mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(nbytes)) != 1:
         return f"cannot fix the mmap threshold at {nbytes} B: mallopt refused"
     return None
