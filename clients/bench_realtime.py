@@ -14,6 +14,12 @@ LIMIT_PCT = 0.1  # overruns and missed commands, % (issue 3)
 BAND_PCT = 2.0  # v around v_ref from 50 ms on, %
 
 
+def within_band(row: dict) -> bool:
+    """A run (a judge() row) held v within BAND_PCT of v_ref from 50 ms on, and did not diverge."""
+    dev = row.get("v_dev_after_50ms_pct")
+    return not row.get("diverged") and dev is not None and dev <= BAND_PCT
+
+
 def judge(res: dict) -> dict:
     """The criteria of one realtime run (run_live's result)."""
     c, m = res["counters"], res["metrics"]
@@ -34,8 +40,7 @@ def judge(res: dict) -> dict:
            # not a criterion: the CPU budget over the run (each process's % of one CPU; host_busy_pct: of all the
            # machine's CPUs, 100 = saturated)
            "cpu": res.get("cpu")}
-    row["ok"] = (not m.get("diverged") and dev is not None and dev <= BAND_PCT and overrun_pct < LIMIT_PCT
-                 and missed_pct < LIMIT_PCT)
+    row["ok"] = within_band(row) and overrun_pct < LIMIT_PCT and missed_pct < LIMIT_PCT
     return row
 
 
@@ -99,9 +104,8 @@ def summarize(rows: list[dict]) -> list[dict]:
 
     out = []
     for (arm, rate, d), rs in groups.items():
-        dev_ok = [r for r in rs if not r.get("diverged") and r.get("v_dev_after_50ms_pct") is not None
-                  and r["v_dev_after_50ms_pct"] <= BAND_PCT]
-        out.append({"arm": arm, "rate_hz": rate, "delay_samples": d, "runs": len(rs), "within_band": len(dev_ok),
+        out.append({"arm": arm, "rate_hz": rate, "delay_samples": d, "runs": len(rs),
+                    "within_band": sum(1 for r in rs if within_band(r)),
                     "diverged": sum(1 for r in rs if r.get("diverged")), "ok": sum(1 for r in rs if r["ok"]),
                     "errors": sum(1 for r in rs if "error" in r),
                     "v_dev_after_50ms_pct": span(rs, "v_dev_after_50ms_pct"),

@@ -25,7 +25,7 @@ from schemas.component import ZenohConfig
 from schemas.scenario import load_scenario
 from service.bus import free_tcp_port, key, open_session
 
-from .bench_realtime import BAND_PCT, judge, schedule_samples
+from .bench_realtime import judge, schedule_samples, within_band
 from .live import Processes, _last_json, _toml, configs_from_scenario, wait_until
 from .machine import StealMeter
 
@@ -127,8 +127,7 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             # until the plant has run its samples and said how it went (its metrics over the whole run take a few
             # seconds at the end); the RSS of the daemon once a second meanwhile
             while pp.poll() is None and time.monotonic() - t0 < seconds + 120.0:
-                if stop.wait(1.0):
-                    break
+                time.sleep(1.0)
                 r = rss_kib(d.pid)
                 el = time.monotonic() - t0
                 if r is not None and el <= seconds:
@@ -151,7 +150,8 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
     m = np.array([b for _, b in rss], dtype=float)
     after = t >= warmup_s
     slope = float(np.polyfit(t[after], m[after], 1)[0]) if after.sum() > 2 else None
-    plant_res = _last_json(outputs.get("plant", (None, "", ""))[1])
+    _rc, plant_out, plant_err = outputs.get("plant", (None, "", ""))
+    plant_res = _last_json(plant_out)
     rr = judge({**plant_res, "daemon": status}) if plant_res.get("metrics") else {}
     loop = status.get("loop", {})
     logging = status.get("logging") or {}
@@ -179,10 +179,9 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             "rejected": status.get("rejected"), "final_state": status.get("state"),
             # the stack's regulation over the whole run, by issue 3's criteria (None: the plant gave no result)
             "delay_samples": d_samples,
-            "regulated": bool(rr and not rr["diverged"] and rr["v_dev_after_50ms_pct"] is not None
-                              and rr["v_dev_after_50ms_pct"] <= BAND_PCT),
+            "regulated": bool(rr) and within_band(rr),
             **{k: rr.get(k) for k in ("v_dev_after_50ms_pct", "diverged", "missed_or_late_pct",
                                       "plant_late_samples_pct")},
             "latency_us": plant_res.get("latency_us"), "cpu": plant_res.get("cpu"),
-            "plant_error": None if plant_res else outputs.get("plant", (None, "", ""))[2][-800:],
+            "plant_error": None if plant_res else plant_err[-800:],
             "host_steal_pct": steal.pct if steal is not None else None}
