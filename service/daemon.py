@@ -35,6 +35,7 @@ from .core import core_metadata, effective_gain, make_core
 from .delay import loop_delay_report
 from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from .forecast import ForecastWorker
+from .priority import fill_tuple_free_lists
 
 _CMD_PACK, _CMD_MAGIC, _VERSION = CMD.struct.pack, CMD.magic, VERSION  # CMD.encode without its call, on the tick
 _now_ns = time.monotonic_ns
@@ -341,6 +342,7 @@ class Daemon:
 
     # ---------------------------------------------------------------- loop
     def run_loop(self, max_ticks: int | None = None) -> None:
+        fill_tuple_free_lists()  # the memory the loop keeps, taken now (service.priority)
         gc.collect()  # tens of ms with everything imported: before the first sample, not during it
         gc.freeze()
         if self.token is None and self.session is not None:

@@ -235,3 +235,34 @@ def test_a_fixed_mmap_threshold_keeps_large_blocks_out_of_the_arenas():
 
     assert probe(128 * 1024) == ["None", "1"]
     assert probe(0) == ["None", "0"]
+
+
+TUPLE_PROBE = """
+import sys
+from service.priority import TUPLE_FREE_LIST_SIZES, fill_tuple_free_lists
+if sys.argv[1] == "fill":
+    fill_tuple_free_lists()
+def burst():
+    # more tuples of every length alive at once than ever before, then all freed: CPython keeps the freed ones (up
+    # to 2000 a length) in its free lists, allocated, as the daemon's forecast windows did a few a second
+    held = [[tuple(range(n)) for _ in range(2500)] for n in TUPLE_FREE_LIST_SIZES]
+    del held
+before = sys.getallocatedblocks()
+burst()
+print(sys.getallocatedblocks() - before)
+"""
+
+
+@pytest.mark.skipif(platform.python_implementation() != "CPython", reason="CPython's tuple free lists")
+def test_filled_tuple_free_lists_keep_the_allocated_blocks_from_growing():
+    """A fresh interpreter's tuple free lists are nearly empty and fill as tuples are freed: a burst leaves ~2000
+    tuples of each length allocated. After fill_tuple_free_lists (what the daemon does before its loop) the same
+    burst leaves nothing: the free lists were full already."""
+    def grown(mode: str) -> int:
+        out = subprocess.run([sys.executable, "-c", TUPLE_PROBE, mode], capture_output=True, text=True, timeout=60,
+                             cwd=ROOT, check=True)
+        return int(out.stdout.split()[-1])
+
+    lengths = len(priority.TUPLE_FREE_LIST_SIZES)
+    assert grown("no") > 0.9 * lengths * priority.TUPLE_FREE_LIST_MAX  # the growth the fill takes up front
+    assert abs(grown("fill")) < 100
