@@ -19,7 +19,7 @@ import json
 import os
 import socket
 import time
-from queue import Queue
+from queue import Empty, Full, Queue
 
 import zenoh
 
@@ -125,18 +125,41 @@ def publisher(session: zenoh.Session, key_expr: str) -> zenoh.Publisher:
     return session.declare_publisher(key_expr, express=True, congestion_control=zenoh.CongestionControl.DROP)
 
 
-def queued(session: zenoh.Session, key_expr: str):
+class NewestQueue(Queue):
+    """A queue.Queue of at most ``maxsize`` items (0: unbounded) that keeps the newest: ``put_newest`` on a full one
+    drops the oldest item and counts it in ``dropped``. For a loop that answers only the newest samples: when it
+    stalls (a starved thread, a stopped process), the samples that arrive meanwhile cannot pile up in memory."""
+
+    def __init__(self, maxsize: int = 0):
+        super().__init__(maxsize)
+        self.dropped = 0
+
+    def put_newest(self, item) -> None:
+        while True:
+            try:
+                self.put_nowait(item)
+                return
+            except Full:
+                try:
+                    self.get_nowait()
+                    self.dropped += 1
+                except Empty:  # the consumer took one meanwhile: there is room now
+                    pass
+
+
+def queued(session: zenoh.Session, key_expr: str, maxsize: int = 0):
     """(subscriber, queue): each message is put as (arrival monotonic ns, payload bytes) by a callback.
 
     For event-driven loops: ``queue.get(timeout=...)`` sleeps without the GIL and wakes on arrival
-    (unlike a blocked ``recv()``, it can time out, so the loop can always be stopped).
+    (unlike a blocked ``recv()``, it can time out, so the loop can always be stopped). ``maxsize`` (0: unbounded)
+    keeps the newest that many and counts the dropped ones in ``queue.dropped`` (``NewestQueue``).
 
     queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout=...) can block forever when its
     deadline passes between a wake-up and the re-wait (the remaining time goes negative, which its lock
     call takes as "no timeout"). Seen here: a realtime plant waiting 44 us hung for minutes in
     futex(..., NULL). Queue.get checks the remaining time itself."""
-    q: Queue = Queue()
-    put, now = q.put, time.monotonic_ns
+    q = NewestQueue(maxsize)
+    put, now = q.put_newest, time.monotonic_ns
 
     def on_sample(sample) -> None:
         put((now(), sample.payload.to_bytes()))

@@ -44,6 +44,9 @@ HIST = 2048  # ticks of command history for the measured loop delay (a power of 
 LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
 STATS_EVERY_NS = 250_000_000  # and the loop's time distributions at most this often
 CPU_EVERY_MASK = 1023  # the loop reads the process's CPU time every 1024 ticks (LoopStats.cpu_pct)
+# the sample trigger's queue of arrived measurements keeps the newest this many (the loop answers the newest
+# loop.catch_up <= 256): a stalled loop thread no longer piles up every sample that arrives meanwhile (memory)
+MEAS_QUEUE_MAX = 1024
 REJECT_EVENT_EVERY_NS = 10_000_000  # at most one recorded reject event per reason this often (all are counted)
 
 
@@ -234,7 +237,7 @@ class Daemon:
         self.session = s = open_session(c.zenoh)
         plant = c.plant_id or c.id
         if c.loop.trigger == "sample" and c.loop.wait == "block":
-            self.meas_sub, self.meas_q = queued(s, key(c.prefix, plant, "meas"))
+            self.meas_sub, self.meas_q = queued(s, key(c.prefix, plant, "meas"), MEAS_QUEUE_MAX)
         else:
             self.meas_sub = latest(s, key(c.prefix, plant, "meas"), c.loop.catch_up)
         self.cmd_pub = publisher(s, key(c.prefix, c.id, "cmd"))
@@ -754,7 +757,9 @@ class Daemon:
         return {
             "id": c.id, "version": __version__, "state": self.state, "config_version": self.config_version,
             "loop": {"rate_hz": c.loop.rate_hz, "trigger": c.loop.trigger,
-                     **self.stats.summary(now, fresh=self.state == "shutdown")},
+                     **self.stats.summary(now, fresh=self.state == "shutdown"),
+                     # samples the full queue dropped (oldest first) while the loop thread was held up
+                     "meas_queue_dropped": getattr(getattr(self, "meas_q", None), "dropped", 0)},
             "last_sample": dict(zip(MEAS.fields, ls, strict=True)) if ls else None,
             "last_command": dict(zip(CMD.fields, self.last_cmd, strict=True)) if self.last_cmd else None,
             "estimate": {k: getattr(est, k) for k in ("E", "E_t", "p", "y_z", "y_z_balance", "eta", "P_r_out_port",

@@ -183,6 +183,37 @@ def test_a_sample_triggered_loop_answers_the_newest_queued_samples_in_order(catc
         d.close()
 
 
+def test_samples_arriving_while_the_loop_is_held_up_keep_only_the_newest_in_memory():
+    """The sample trigger's queue is bounded (service.daemon.MEAS_QUEUE_MAX), keeping the newest: samples that
+    arrive while the loop thread is held up cannot pile up in memory (a 10 kHz soak grew 26 MB at once), the
+    dropped ones are counted in status, and the loop then answers the newest sample."""
+    from service.daemon import MEAS_QUEUE_MAX
+
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
+    comp["neighbours"] = []
+    comp["loop"].update(trigger="sample", wait="block", catch_up=1)
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    n = 3 * MEAS_QUEUE_MAX
+    try:
+        got = []
+        sub = d.session.declare_subscriber("energyctl/source/cmd",
+                                           lambda m: got.append(CMD.decode(m.payload.to_bytes())[0]))
+        pub = d.session.declare_publisher("energyctl/source/meas")
+        for k in range(n):  # the loop is not running: held up
+            pub.put(MEAS.encode(k, k * 1e-4, 15.0, 80.0, 80.15, 15.0))
+        assert wait_until(lambda: d.meas_q.dropped == n - MEAS_QUEUE_MAX, 10.0), d.meas_q.dropped
+        assert d.meas_q.qsize() == MEAS_QUEUE_MAX
+        assert d.status()["loop"]["meas_queue_dropped"] == n - MEAS_QUEUE_MAX
+        d.run_loop(max_ticks=1)
+        assert wait_until(lambda: len(got) == 1, 5.0)
+        assert got == [n - 1]  # the newest
+        sub.undeclare()
+    finally:
+        d.close()
+
+
 def test_query_without_a_controller_fails_clearly():
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     with pytest.raises(QueryError, match="no answer"):
