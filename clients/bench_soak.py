@@ -171,6 +171,7 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             if len(t) else [],
             "loop_ticks": loop.get("ticks"), "overruns": loop.get("overruns"), "overrun_pct": loop.get("overrun_pct"),
             "no_new_sample": loop.get("no_new_sample"), "missing_samples": loop.get("missing_samples"),
+            "meas_queue_dropped": loop.get("meas_queue_dropped"),
             "loop_exec_us": loop.get("exec_us"), "loop_publish_us": loop.get("publish_us"),
             "loop_compute_us": loop.get("compute_us"), "loop_control_us": loop.get("control_us"),
             "loop_period_us": loop.get("period_us"),

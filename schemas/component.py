@@ -47,6 +47,13 @@ class ZenohConfig(Strict):
                                   "and then drops the message (congestion control DROP). Zenoh's own default, 2, "
                                   "dropped samples and commands whenever its send thread stalled for a millisecond "
                                   "on this 2-vCPU machine; unset: 16, or the config_file's value when one is given")
+    shared_memory: bool | None = Field(
+        default=None, description="Zenoh's transport/shared_memory/enabled: with it, Zenoh puts every message over "
+                                  "3 KiB (here: the status replies, once a diverged run's rejects make them longer) "
+                                  "through a 16 MiB shared-memory pool it creates at that moment, and the pool's "
+                                  "pages become resident as its chunks go round: a 10 kHz soak's daemon grew 26 MB "
+                                  "in one minute. Our hot-path messages are under 100 B and never use it. Unset: "
+                                  "off, or the config_file's value when one is given")
     tls_root_ca: str | None = Field(default=None, description="TLS (tls/ endpoints): the CA certificate that signed "
                                                              "the router's certificate (PEM file)")
     tls_certificate: str | None = Field(default=None, description="mutual TLS: this session's certificate (PEM), "

@@ -54,6 +54,11 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
         q = TX_QUEUE_BATCHES
     if q is not None:
         cfg.insert_json5("transport/link/tx/queue/size/data", json.dumps(q))
+    shm = z.shared_memory
+    if shm is None and not z.config_file:
+        shm = False
+    if shm is not None:
+        cfg.insert_json5("transport/shared_memory/enabled", json.dumps(shm))
     if z.user is not None:
         auth = {"user": z.user, "password": read_password(z.password_file)}
         cfg.insert_json5("transport/auth/usrpwd", json.dumps(auth))

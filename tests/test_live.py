@@ -214,6 +214,34 @@ def test_samples_arriving_while_the_loop_is_held_up_keep_only_the_newest_in_memo
         d.close()
 
 
+@pytest.mark.parametrize("shared_memory", [None, True])
+def test_sessions_use_no_shared_memory_pool_unless_asked(shared_memory):
+    """A reply over 3 KiB (a long status) made Zenoh create its 16 MiB shared-memory pool (/dev/shm/*.zenoh) and a
+    10 kHz soak's daemon grew 26 MB: our sessions turn shared memory off unless zenoh.shared_memory is set."""
+    import glob
+    import os
+
+    from service.bus import open_session
+
+    def pools() -> set[str]:
+        return set(glob.glob("/dev/shm/*.zenoh"))
+
+    before = pools()
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    a = open_session(ZenohConfig(listen=[ep], shared_memory=shared_memory))
+    b = open_session(ZenohConfig(connect=[ep], shared_memory=shared_memory))
+    try:
+        a.declare_queryable("t/big", lambda q: q.reply(q.key_expr, b"x" * 8192))
+        assert wait_until(lambda: any(r.ok is not None for r in b.get("t/big", timeout=1.0)), 10.0)
+        made = pools() - before
+        assert (len(made) > 0) == bool(shared_memory), made
+    finally:
+        a.close()
+        b.close()
+        for f in pools() - before:
+            os.unlink(f)
+
+
 def test_query_without_a_controller_fails_clearly():
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     with pytest.raises(QueryError, match="no answer"):
