@@ -183,6 +183,8 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
             "regulated": bool(rr) and within_band(rr),
             **{k: rr.get(k) for k in ("v_dev_after_50ms_pct", "diverged", "missed_or_late_pct",
                                       "plant_late_samples_pct")},
+            # when v deviated most (s into the plant's run) and how long it spent outside the band
+            **{k: plant_res.get("metrics", {}).get(k) for k in ("hold_max_dev_t_s", "hold_outside_band_s")},
             "latency_us": plant_res.get("latency_us"), "cpu": plant_res.get("cpu"),
             "plant_error": None if plant_res else plant_err[-800:],
             "host_steal_pct": steal.pct if steal is not None else None}

@@ -137,6 +137,13 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     return SimResult(scn, trace, metrics, feas.violations, list(feas.windows.values()), core.d, forecasts)
 
 
+def outside_time(t: np.ndarray, outside: np.ndarray, keep: np.ndarray) -> float:
+    """Time (s) over the samples in ``keep`` that are ``outside``: each counts until the next sample (the last one
+    for as long as the step before it)."""
+    dt = np.diff(t, append=t[-1] + (t[-1] - t[-2] if len(t) > 1 else 0.0))
+    return float(dt[outside & keep].sum())
+
+
 def compute_metrics(tr: dict[str, np.ndarray], v_ref: float, duration_s: float, diverged: bool,
                     n_violations: int) -> dict:
     t, v = tr["t"], tr["v"]
@@ -160,6 +167,10 @@ def compute_metrics(tr: dict[str, np.ndarray], v_ref: float, duration_s: float, 
         "v_max": float(v.max()) if n else None,
         "ss_error": float(dev[tail].mean()) if n else None,
         "hold_max_dev_pct": float(dev[hold].max() / v_ref * 100) if hold.any() else None,
+        # where and how long (s): the time of that largest deviation, and the time spent outside +-2 % from 50 ms on
+        # (one excursion in a 10-minute run fails the band as much as a run that never settles)
+        "hold_max_dev_t_s": float(t[hold][np.argmax(dev[hold])]) if hold.any() else None,
+        "hold_outside_band_s": outside_time(t, dev > BAND_SETTLE * v_ref, hold) if hold.any() else None,
         "rms_du_dt": float(np.sqrt(np.mean(tr["du_dt_applied"] ** 2))) if n else None,
         "max_abs_du_dt": float(np.abs(tr["du_dt_applied"]).max()) if n else None,
         "rms_tracking_error": float(np.sqrt(np.mean(err ** 2))) if n else None,
