@@ -631,10 +631,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("sim", help="run one scenario's closed loop offline and print its metrics",
                        description="Run a TOML scenario's closed loop offline, as fast as the machine allows. "
-                                   "Metrics: settle_s = time of the last exit from +-2 %% of v_ref; ss_error = "
-                                   "mean |v - v_ref| over the last 10 %%; hold_max_dev_pct = max |v - v_ref| / "
+                                   "Metrics: settle_s = time of the last exit from +-2 % of v_ref; ss_error = "
+                                   "mean |v - v_ref| over the last 10 %; hold_max_dev_pct = max |v - v_ref| / "
                                    "v_ref for t >= 50 ms, hold_max_dev_t_s when it happened, hold_outside_band_s "
-                                   "the time outside +-2 %% from 50 ms on; rms/max du/dt of the applied command; "
+                                   "the time outside +-2 % from 50 ms on; rms/max du/dt of the applied command; "
                                    "rms_tracking_error = rms(y_z - y_ref) on the true state; "
                                    "feasibility_violations = excursions of the outgoing interaction variable "
                                    "from the window's incoming range; diverged = v left [0.5, 2] v_ref.")
