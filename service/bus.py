@@ -49,16 +49,13 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
         cfg.insert_json5("connect/endpoints", json.dumps(z.connect))
     if not z.config_file or not z.multicast_scouting:
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(z.multicast_scouting))
-    q = z.tx_queue_batches
-    if q is None and not z.config_file:  # a user's own file keeps its value unless the field is set
-        q = TX_QUEUE_BATCHES
-    if q is not None:
-        cfg.insert_json5("transport/link/tx/queue/size/data", json.dumps(q))
-    shm = z.shared_memory
-    if shm is None and not z.config_file:
-        shm = False
-    if shm is not None:
-        cfg.insert_json5("transport/shared_memory/enabled", json.dumps(shm))
+    # fields with a default of ours: set, or unset and no config file (a user's own file keeps its value)
+    for path, value, ours in (("transport/link/tx/queue/size/data", z.tx_queue_batches, TX_QUEUE_BATCHES),
+                              ("transport/shared_memory/enabled", z.shared_memory, False)):
+        if value is None and not z.config_file:
+            value = ours
+        if value is not None:
+            cfg.insert_json5(path, json.dumps(value))
     if z.user is not None:
         auth = {"user": z.user, "password": read_password(z.password_file)}
         cfg.insert_json5("transport/auth/usrpwd", json.dumps(auth))
