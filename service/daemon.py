@@ -267,8 +267,9 @@ class Daemon:
             self.forecaster = ForecastWorker(c.model, self.period_s, self.core.d, c.forecast, c.forecast_window_s,
                                              on_result=self._forecast_done)
             self.forecaster.start()
-        self._threads = [threading.Thread(target=self._serve, args=(self.queryables[leaf], fn), name=leaf,
-                                          daemon=True) for leaf, fn in serve.items()]
+        self._threads = [threading.Thread(target=self._serve, name=leaf, daemon=True,
+                                          args=(self.queryables[leaf], key(c.prefix, c.id, leaf), fn))
+                         for leaf, fn in serve.items()]
         for t in self._threads:
             t.start()
         self.state = "active"
@@ -729,7 +730,8 @@ class Daemon:
             self.recorder.offer(self.t_zout, t, vals)
 
     # ---------------------------------------------------------------- queries (query thread)
-    def _serve(self, q, handler) -> None:
+    def _serve(self, q, own_key: str, handler) -> None:
+        """Answer one queryable's queries on its own key (a `get` on ``energyctl/**`` learns which leaf answered)."""
         while True:
             try:
                 query = q.recv()
@@ -738,7 +740,7 @@ class Daemon:
             try:
                 ok, body = handler(query)
                 if ok:
-                    query.reply(query.key_expr, json.dumps(body))
+                    query.reply(own_key, json.dumps(body))
                 else:
                     query.reply_err(json.dumps(body))
             except Exception as e:  # noqa: BLE001 - a bad query must not kill the thread
