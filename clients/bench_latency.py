@@ -18,13 +18,12 @@ import time
 from pathlib import Path
 from queue import Empty
 
+from clients.live import Processes, _toml, wait_until
+from clients.machine import StealMeter
 from schemas.codec import MEAS
 from schemas.component import ZenohConfig
-from service.bus import free_tcp_port, key, open_session, publisher, queued
+from service.daemon.bus import free_tcp_port, key, open_session, publisher, queued
 from service.priority import set_cpus
-
-from .live import Processes, _toml, wait_until
-from .machine import StealMeter
 
 ECHO = """
 import sys, json, time, zenoh

@@ -37,13 +37,12 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from clients.live import wait_until
+from clients.machine import StealMeter
 from schemas.codec import MEAS
 from schemas.component import ZenohConfig
 from schemas.messages import Measurement
-from service.bus import free_tcp_port, open_session, publisher
-
-from .live import wait_until
-from .machine import StealMeter
+from service.daemon.bus import free_tcp_port, open_session, publisher
 
 PEER = """
 import struct, sys, threading, time, zenoh

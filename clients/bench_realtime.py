@@ -122,10 +122,9 @@ def bench_realtime(scn, rates: list[float], delays: list[int | str], duration_s:
     "b") run alternately with ``scn`` (arm "a"), so that both see the same minutes of the machine; cpus: the CPUs per
     process (clients.live.configs_from_scenario). The highest rate
     is the highest at which every run of arm a met all criteria."""
+    from clients.live import configs_from_scenario, run_live
+    from clients.machine import StealMeter
     from schemas.scenario import ScenarioError
-
-    from .live import configs_from_scenario, run_live
-    from .machine import StealMeter
 
     arms = [("a", scn)] + ([("b", scn_versus)] if scn_versus is not None else [])
     runs = []

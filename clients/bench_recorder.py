@@ -21,11 +21,10 @@ from pathlib import Path
 
 from mcap.writer import CompressionType, Writer
 
+from clients.machine import StealMeter
 from schemas.codec import CMD, EST, MEAS, TICK_IN, Z
 from schemas.messages import Estimate, TickInput
-from service.shmlog import RingRecorder
-
-from .machine import StealMeter
+from service.logio.ring import RingRecorder
 
 EST_FIELDS = tuple(Estimate.model_fields)
 ZIN_FIELDS = tuple(TickInput.model_fields)

@@ -21,13 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from clients.bench_realtime import judge, schedule_samples, within_band
+from clients.live import Processes, _last_json, _toml, configs_from_scenario, wait_until
+from clients.machine import StealMeter
 from schemas.component import ZenohConfig
 from schemas.scenario import load_scenario
-from service.bus import free_tcp_port, key, open_session
-
-from .bench_realtime import judge, schedule_samples, within_band
-from .live import Processes, _last_json, _toml, configs_from_scenario, wait_until
-from .machine import StealMeter
+from service.daemon.bus import free_tcp_port, key, open_session
 
 EMBEDDED = Path(__file__).parent / "embedded" / "demo.toml"
 

@@ -20,9 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from clients.bench_latency import percentiles
 from schemas.codec import MEAS
-
-from .bench_latency import percentiles
 
 
 def _trace(scenario_path: str, n: int):
@@ -38,12 +37,11 @@ def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: di
     """Tick an opened daemon by hand through the trace's measurements (the first n, but those in skip: lost on the
     way); (exec times ns, 0 where skipped; final status). hooks: {tick: fn(daemon)} called between ticks, where the
     loop applies config changes."""
+    from clients.live import configs_from_scenario
     from schemas.component import ComponentConfig, config_from_dict
-    from service.bus import free_tcp_port
     from service.core import make_core
-    from service.daemon import Daemon
-
-    from .live import configs_from_scenario
+    from service.daemon.bus import free_tcp_port
+    from service.daemon.daemon import Daemon
 
     m = len(tr["t"]) if n is None else n
     comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False,
@@ -109,7 +107,7 @@ def bench_tick(scenario_path: str, n: int = 20_000) -> dict:
 
 def bench_replay(scenario_path: str, seconds: float = 20.0, keep: str | None = None) -> dict:
     """Record seconds of a 10 kHz daemon log by hand, replay it from the index and from the JSON channels."""
-    import clients.replay as rp
+    import service.replay as rp
 
     scn, tr = _trace(scenario_path, int(seconds * 10_000))
     with tempfile.TemporaryDirectory() as tmp:

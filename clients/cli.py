@@ -14,10 +14,9 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
+from clients.table import metrics_table, render
 from schemas.scenario import ScenarioError, load_scenario, parse_override
 from service import __version__
-
-from .table import metrics_table, render
 
 EMBEDDED = Path(__file__).parent / "embedded"
 CONTROLLERS = ("fblc", "smc", "lqr", "bm", "fixed")
@@ -66,7 +65,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     res = run(scn)
     wall = time.perf_counter() - t0
     if args.out:
-        from service.recorder import write_sim_mcap
+        from service.logio.mcapfile import write_sim_mcap
 
         write_sim_mcap(args.out, res, prefix=f"energyctl/{scn.name}")
     m = dict(res.metrics)
@@ -216,7 +215,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from service.recorder import write_sim_mcap
+    from service.logio.mcapfile import write_sim_mcap
     from service.sim import run
 
     if args.lockstep and args.realtime:
@@ -250,7 +249,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(metrics_table([([scn.name, scn.controller.kind], m)], ["scenario", "controller"]))
         regulated = (not m["diverged"]) and m["settle_s"] is not None and m["settle_s"] <= 0.05
     else:
-        from .live import run_live
+        from clients.live import run_live
 
         logs.mkdir(parents=True, exist_ok=True)
         res = run_live(scn, not args.realtime, rate, str(out), args.duration, args.delay, secure=args.secure,
@@ -306,15 +305,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
                "wall_s_best": best, "wall_s_worst": worst, "realtime_ratio_best": 1.0 / best,
                "realtime_ratio_worst": 1.0 / worst}
     elif args.what == "soak":
-        from .bench_soak import bench_soak
+        from clients.bench_soak import bench_soak
 
         # the realtime stack of demo --realtime and bench realtime, under the user's --set
         res = bench_soak(args.minutes, rate_hz=args.rate, cpus=args.cpus,
                          sets=[*DEMO_REALTIME_SETS, *(args.set or [])])
     elif args.what == "recorder":
+        from clients.bench_recorder import bench_recorder
         from service.priority import set_nice
-
-        from .bench_recorder import bench_recorder
 
         refused = set_nice(args.nice)  # the loop thread (and the writer it spawns, which drops below it)
         if refused:
@@ -324,11 +322,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         res["nice"] = args.nice
         res["writer_cpus"] = cpus
     elif args.what == "tick":
-        from .bench_tick import bench_tick
+        from clients.bench_tick import bench_tick
 
         res = bench_tick(args.scenario or str(EMBEDDED / "demo.toml"), n=args.n or 20_000)
     elif args.what == "realtime":
-        from .bench_realtime import bench_realtime, progress_line
+        from clients.bench_realtime import bench_realtime, progress_line
 
         # with demo --realtime's settings unless --set says otherwise
         path = args.scenario or str(EMBEDDED / "demo.toml")
@@ -341,11 +339,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
                              repeats=args.runs, scn_versus=versus, cpus=args.cpus,
                              progress=lambda r: print(progress_line(r), file=sys.stderr, flush=True))
     elif args.what == "replay":
-        from .bench_tick import bench_replay
+        from clients.bench_tick import bench_replay
 
         res = bench_replay(args.scenario or str(EMBEDDED / "demo.toml"), seconds=args.seconds or 10.0)
     elif args.what == "recovery":
-        from .faults import recovery
+        from clients.faults import recovery
 
         rt = args.realtime
         scn = _load(args.scenario or str(EMBEDDED / "demo.toml"), [*(DEMO_REALTIME_SETS if rt else []),
@@ -353,17 +351,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
         res = recovery(scn, progress=lambda m: print(m, file=sys.stderr, flush=True), realtime=rt,
                        rate_hz=DEMO_REALTIME_HZ, controller_delay=DEMO_REALTIME_DELAY)
     elif args.what == "middleware":
-        from .bench_middleware import bench_middleware
+        from clients.bench_middleware import bench_middleware
 
         res = bench_middleware(n=args.n or 3000, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
     elif args.what == "wake":
+        from clients.bench_wake import bench_wake
         from schemas.component import ComponentConfig
-
-        from .bench_wake import bench_wake
 
         res = bench_wake(slack_ns=ComponentConfig.model_fields["timer_slack_ns"].default, n=args.n or 20_000)
     elif args.what == "latency":
-        from .bench_latency import bench_latency
+        from clients.bench_latency import bench_latency
 
         res = bench_latency(n=args.n or 3000, wait=args.wait or "block",
                             cpus=(args.cpus or {}).get("controller"))
@@ -379,8 +376,8 @@ def _bench_core(args: argparse.Namespace) -> dict:
     import gc
 
     from service.core import make_core
+    from service.core.types import Incoming, Sample
     from service.sim import run
-    from service.types import Incoming, Sample
 
     path = args.scenario or str(EMBEDDED / "demo.toml")
     scn = _load(path, [*(args.set or []), "timing.duration_s=0.5"])
@@ -415,7 +412,7 @@ def _bench_core(args: argparse.Namespace) -> dict:
     res: dict = {"bench": "core", "scenario": scn.name, "controller": scn.controller.kind,
                  "mapping": scn.controller.mapping, "delay_samples": scn.timing.delay_samples, "steps": n,
                  "passes": max(1, args.repeat)}
-    from .bench_latency import percentiles
+    from clients.bench_latency import percentiles
 
     for m, tm in times.items():
         res[m] = {"mean_us": sum(tm) / len(tm) / 1e3, **percentiles(tm)}
@@ -435,13 +432,13 @@ def _zenoh_from_args(args: argparse.Namespace):
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from .secure import run_router
+    from clients.secure import run_router
 
     return run_router(args.config, args.listen or [])
 
 
 def cmd_secure_profile(args: argparse.Namespace) -> int:
-    from .secure import write_profile
+    from clients.secure import write_profile
 
     plants = None
     if args.plant:
@@ -462,31 +459,28 @@ def cmd_secure_profile(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from clients.live import run_daemon
     from schemas.component import ComponentConfig, load_config
-
-    from .live import run_daemon
 
     return run_daemon(load_config(ComponentConfig, args.config, args.set), args.stats_out)
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
+    from clients.live import run_plant_cmd
     from schemas.component import PlantPeerConfig, load_config
-
-    from .live import run_plant_cmd
 
     return run_plant_cmd(load_config(PlantPeerConfig, args.config, args.set), args.json)
 
 
 def cmd_load(args: argparse.Namespace) -> int:
+    from clients.live import run_load_cmd
     from schemas.component import LoadPeerConfig, load_config
-
-    from .live import run_load_cmd
 
     return run_load_cmd(load_config(LoadPeerConfig, args.config, args.set))
 
 
 def cmd_query(args: argparse.Namespace) -> int:
-    from .query import QueryError, flatten, query, unit_of
+    from clients.query import QueryError, flatten, query, unit_of
 
     try:
         ans = query(_zenoh_from_args(args), args.prefix, args.component, args.what, args.set, args.timeout)
@@ -501,7 +495,7 @@ def cmd_query(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from .replay import ReplayError, replay
+    from service.replay import ReplayError, replay
 
     if (args.set or args.controller) and not args.out:
         raise ScenarioError("replay: a what-if (--set/--controller) needs --out NEW.mcap")
@@ -537,7 +531,7 @@ def describe_loop_delay(ld: dict) -> str:
 
 
 def cmd_log(args: argparse.Namespace) -> int:
-    from .logtools import info, recover
+    from clients.logtools import info, recover
 
     try:
         if args.action == "info":
@@ -571,7 +565,7 @@ def cmd_log(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from .report import ReportError, report
+    from clients.report import ReportError, report
 
     try:
         res = report(args.logs, args.out)

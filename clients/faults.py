@@ -17,13 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from clients.live import Processes, _toml, child_env, configs_from_scenario, port_open, wait_until
+from clients.query import QueryError, ask
 from schemas.component import ZenohConfig, merge_tables
 from schemas.scenario import Scenario
-from service.bus import free_tcp_port
+from service.daemon.bus import free_tcp_port
 from service.sim import BAND_SETTLE
-
-from .live import Processes, _toml, child_env, configs_from_scenario, port_open, wait_until
-from .query import QueryError, ask
 
 
 class Rig:
@@ -108,7 +107,7 @@ class Rig:
         """The controller's status, or None if it does not answer (one Zenoh session for the rig's life)."""
         try:
             if self._session is None:
-                from service.bus import open_session
+                from service.daemon.bus import open_session
 
                 self._session = open_session(self._zq)
             return ask(self._session, "energyctl", "source", "status", timeout_s=timeout_s)

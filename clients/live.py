@@ -49,7 +49,7 @@ def start_process(cfg, command: str) -> threading.Event:
 
 
 def run_daemon(cfg: ComponentConfig, stats_out: str | None = None) -> int:
-    from service.daemon import Daemon
+    from service.daemon.daemon import Daemon
 
     stop = start_process(cfg, "run")
     d = Daemon(cfg)
@@ -77,7 +77,7 @@ def run_daemon(cfg: ComponentConfig, stats_out: str | None = None) -> int:
 
 
 def run_plant_cmd(cfg: PlantPeerConfig, json_out: bool) -> int:
-    from .peers import run_plant
+    from clients.peers import run_plant
 
     stop = start_process(cfg, "plant")
     try:
@@ -91,7 +91,7 @@ def run_plant_cmd(cfg: PlantPeerConfig, json_out: bool) -> int:
 
 
 def _plant_text(res: dict) -> str:
-    from .table import metrics_table
+    from clients.table import metrics_table
 
     lines = [metrics_table([(["plant", res["pacing"]], res["metrics"])], ["", "pacing"])]
     lines.append("counters: " + ", ".join(f"{k} {v}" for k, v in res["counters"].items()))
@@ -103,7 +103,7 @@ def _plant_text(res: dict) -> str:
 
 
 def run_load_cmd(cfg: LoadPeerConfig) -> int:
-    from .peers import run_load
+    from clients.peers import run_load
 
     stop = start_process(cfg, "load")
     res = run_load(cfg, stop)
@@ -314,14 +314,14 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
     ``secure``: the three connect as Zenoh clients, each with its own credentials, to a router that
     enforces the secure profile (``clients.secure``), written to the work directory first; ``tls``: over
     mutual TLS, each also with its own certificate."""
-    from service.bus import free_tcp_port
+    from service.daemon.bus import free_tcp_port
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     comp, plant, load = configs_from_scenario(scn, ep, lockstep, rate_hz, controller_delay, out, duration_s, loop,
                                               nice, cpus)
     tmp = Path(workdir or tempfile.mkdtemp(prefix="energyctl-"))
     if secure:
-        from .secure import client_zenoh, write_profile
+        from clients.secure import client_zenoh, write_profile
 
         creds = write_profile(tmp / "secure", controllers=["source"], plants={"plant": "source"}, loads=["load"],
                               listen=[ep], tls=tls)

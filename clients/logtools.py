@@ -78,8 +78,8 @@ def measured_loop_delay(path: str | Path, core: dict) -> dict:
     """The loop delay measured from the log's last plant epoch (service/delay.py)."""
     import numpy as np
 
-    from clients.replay import SEQ_BITS, ReplayError, collect
-    from service.delay import loop_delay_report
+    from service.core.delay import loop_delay_report
+    from service.replay import SEQ_BITS, ReplayError, collect
 
     try:
         tk = collect([path])

@@ -14,15 +14,14 @@ from queue import Empty
 
 import numpy as np
 
+from clients.machine import ProcessCpu, StealMeter
 from schemas.codec import CMD, MEAS, PLANT, DecodeError, Z
 from schemas.component import LoadPeerConfig, PlantPeerConfig
-from service.bus import key, latest, open_session, publisher, queued
-from service.feasibility import announced_window, load_box
-from service.plant import CommandSchedule, RLCPlant, Sensor, load_current
-from service.profiles import Profile
+from service.core.feasibility import announced_window, load_box
+from service.daemon.bus import key, latest, open_session, publisher, queued
+from service.plant.profiles import Profile
+from service.plant.rlc import CommandSchedule, RLCPlant, Sensor, load_current
 from service.sim import compute_metrics, substeps
-
-from .machine import ProcessCpu, StealMeter
 
 PLANT_TRACE = ("t", "i", "v", "u", "i_load", "P_l", "i_meas", "v_meas", "u_meas", "i_load_meas", "du_dt",
                "du_dt_applied", "y_z_true", "y_ref_true")
@@ -55,7 +54,7 @@ def matched(pub, timeout_s: float, stop: threading.Event) -> bool:
 
 def _trace_recorder(cfg: PlantPeerConfig, t_meas: str, t_cmd: str, t_plant: str):
     """The plant's trace (measurements, commands, true state) through a recorder process."""
-    from service.shmlog import RingRecorder
+    from service.logio.ring import RingRecorder
 
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -362,7 +361,7 @@ def run_load(cfg: LoadPeerConfig, stop: threading.Event) -> dict:
         if cfg.log_dir:
             from datetime import UTC, datetime
 
-            from service.shmlog import RingRecorder
+            from service.logio.ring import RingRecorder
 
             stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
             rec = RingRecorder(f"{cfg.log_dir}/{cfg.id}-{stamp}.mcap", {z_topic: ("energyctl.Interaction", Z)},

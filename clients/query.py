@@ -9,7 +9,7 @@ import time
 from schemas.codec import DecodeError, Z
 from schemas.component import ZenohConfig
 from schemas.messages import Command, Estimate, Interaction, Measurement
-from service.bus import key, open_session
+from service.daemon.bus import key, open_session
 
 
 class QueryError(RuntimeError):

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .logtools import scan
+from clients.logtools import scan
 
 
 class ReportError(RuntimeError):
@@ -82,9 +82,9 @@ def feasibility_bands(log: dict):
     if not scn_d:
         return None
     from schemas.scenario import Scenario
-    from service.core import effective_gain
-    from service.feasibility import incoming_range, load_box, tau_prime
-    from service.profiles import Profile
+    from service.core.control import effective_gain
+    from service.core.feasibility import incoming_range, load_box, tau_prime
+    from service.plant.profiles import Profile
 
     scn = Scenario.model_validate(scn_d)
     load = Profile(scn.load, scn.base_dir)

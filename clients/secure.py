@@ -244,7 +244,7 @@ def run_router(config_file: str | None, listen: list[str], ready: threading.Even
     """A Zenoh router in this process until SIGINT/SIGTERM (or ``stop``). Prints one line when listening."""
     import sys
 
-    from service.bus import open_session
+    from service.daemon.bus import open_session
 
     z = ZenohConfig(mode="router", listen=listen, config_file=config_file)
     session = open_session(z)
@@ -254,7 +254,7 @@ def run_router(config_file: str | None, listen: list[str], ready: threading.Even
             signal.signal(sig, lambda *_: stop.set())
     acl = "off"
     if config_file:
-        from service.bus import zenoh_config
+        from service.daemon.bus import zenoh_config
 
         acl = "on" if json.loads(zenoh_config(z).get_json("access_control/enabled")) else "off"
     print(f"energyctl router: listening on {listen or 'the config file endpoints'}, access control {acl}",

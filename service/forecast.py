@@ -33,12 +33,10 @@ import math
 from dataclasses import asdict, dataclass, replace
 
 from schemas.scenario import CircuitParams, ControllerConfig, PlantConfig, SourceLimits
-
-from .core import make_core
-from .feasibility import incoming_range
-from .plant import RLCPlant, load_current
-from .priority import FORECAST_NICE, background
-from .types import Incoming, Sample
+from service.core import make_core
+from service.core.feasibility import incoming_range
+from service.core.types import Incoming, Sample
+from service.plant.rlc import RLCPlant, load_current
 
 FORECAST_STEP_S = 5e-5  # plant integration step inside the forecast (s): 2 RK4 steps per 10 kHz period
 
@@ -193,10 +191,6 @@ def forecast_outgoing(controller: ControllerConfig, model: CircuitParams, period
     return f.for_box(box, tau_p, literal)
 
 
-# ------------------------------------------------------------------------------------------------------------
-# The daemon's side: the forecast runs off the loop thread and off the loop's GIL (one spawned worker process).
-
-
 def widen_to_grid(box: tuple[float, float, float, float], quantum: float) -> tuple[float, float, float, float]:
     """The box widened outward to a grid of ``quantum`` of each pair's magnitude (rounded up to a power of 2), so
     that nearby boxes share one forecast and the forecast stays conservative."""
@@ -209,121 +203,3 @@ def widen_to_grid(box: tuple[float, float, float, float], quantum: float) -> tup
         q = quantum * 2.0 ** math.ceil(math.log2(mag))
         out += [math.floor(lo / q) * q, math.ceil(hi / q) * q]
     return out[0], out[1], out[2], out[3]
-
-
-def _worker_ready() -> bool:
-    return True
-
-
-class ForecastWorker:
-    """Forecasts Z^{r,out}[w] for the newest window the neighbours announced (``request`` from the loop thread:
-    stores a tuple and sets an event, never waits). A thread of its own hands the request to one worker process
-    and keeps the result in ``result`` ((window, OutgoingForecast), replaced whole) for the loop to publish.
-    Forecasts are cached by (widened box, controller)."""
-
-    CACHE = 64
-
-    def __init__(self, model: CircuitParams, period_s: float, delay_samples: int, cfg, window_s: float,
-                 quantum: float = 0.02, on_result=None):
-        import threading
-
-        self.model, self.period_s, self.delay_samples = model, period_s, delay_samples
-        self.cfg, self.window_s, self.quantum = cfg, window_s, quantum
-        self.on_result = on_result
-        self.result: tuple[int, OutgoingForecast] | None = None
-        self.computed = self.cache_hits = self.errors = self.infeasible = 0
-        self.last_error = ""
-        self.last_ms = 0.0
-        self._cache: dict = {}
-        self._req: tuple | None = None
-        self._ev = threading.Event()
-        self._stop = False
-        self._pool = None
-        self._thread = threading.Thread(target=self._run, name="forecast", daemon=True)
-
-    def start(self) -> None:
-        """Start the worker process and wait until it has imported everything (about 1 s of CPU: better before
-        the loop runs than during its first window)."""
-        self._pool = self._new_pool()
-        self._pool.submit(_worker_ready).result(timeout=60)
-        self._thread.start()
-
-    @staticmethod
-    def _new_pool():
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=background, initargs=(FORECAST_NICE,))
-
-    def request(self, window: int, box: tuple[float, float, float, float], controller: ControllerConfig,
-                version: int = 0) -> None:
-        """version: the controller config's version (the cache key; a config set bumps it)."""
-        self._req = (window, box, controller, version)
-        self._ev.set()
-
-    def close(self) -> None:
-        self._stop = True
-        self._ev.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
-
-    def status(self) -> dict:
-        res = self.result
-        out: dict = {"computed": self.computed, "cache_hits": self.cache_hits, "infeasible_windows": self.infeasible,
-                     "errors": self.errors, "last_error": self.last_error, "last_compute_ms": round(self.last_ms, 2)}
-        if res is not None:
-            w, f = res
-            out.update(window=w, feasible=f.feasible, reason=f.reason,
-                       Z_out={"P": [f.P_lo, f.P_hi], "P_dot": [f.P_dot_lo, f.P_dot_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]},
-                       Z_in={"P": list(f.z_in[:2]), "Qdot": list(f.z_in[2:])}, v_range=[f.v_lo, f.v_hi],
-                       u_range=[f.u_lo, f.u_hi], limited_ticks=f.limited_ticks)
-        return out
-
-    def _run(self) -> None:
-        import time
-
-        from .core import effective_gain
-        from .feasibility import tau_prime
-
-        while not self._stop:
-            self._ev.wait()
-            self._ev.clear()
-            req, self._req = self._req, None
-            if self._stop or req is None:
-                continue
-            w, box, ctl, version = req
-            wide = widen_to_grid(box, self.quantum)
-            key = (wide, version)
-            tau_p = tau_prime(self.model.L_H, self.model.R_ohm, effective_gain(ctl, self.model))
-            f = self._cache.get(key)
-            if f is not None:
-                self.cache_hits += 1
-            else:
-                c = self.cfg
-                t0 = time.perf_counter()
-                try:
-                    f = self._pool.submit(forecast_outgoing, ctl, self.model, self.period_s, self.delay_samples, wide,
-                                          tau_p, steps=c.load_steps, settle_s=c.settle_s,
-                                          max_ramp_s=self.window_s).result(timeout=60)
-                except Exception as e:  # noqa: BLE001 - a broken worker: count, say, start a new one next time
-                    self.errors += 1
-                    self.last_error = f"{type(e).__name__}: {e}"
-                    try:
-                        self._pool.shutdown(wait=False, cancel_futures=True)
-                    finally:
-                        self._pool = self._new_pool()
-                    continue
-                self.last_ms = (time.perf_counter() - t0) * 1e3
-                self.computed += 1
-                if len(self._cache) >= self.CACHE:
-                    self._cache.pop(next(iter(self._cache)))
-                self._cache[key] = f
-            f = f.for_box(box, tau_p)
-            self.infeasible += not f.feasible
-            self.result = (w, f)
-            if self.on_result is not None:
-                self.on_result(w, f)

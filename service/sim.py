@@ -14,13 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schemas.scenario import Scenario
-
-from .core import effective_gain, make_core
-from .feasibility import FeasibilityMonitor, Violation, incoming_range, load_box, tau_prime
-from .forecast import OutgoingForecast, forecast_outgoing
-from .plant import CommandSchedule, RLCPlant, Sensor, load_current
-from .profiles import Profile
-from .types import Incoming
+from service.core import effective_gain, make_core
+from service.core.feasibility import FeasibilityMonitor, Violation, incoming_range, load_box, tau_prime
+from service.core.types import Incoming
+from service.forecast import OutgoingForecast, forecast_outgoing
+from service.plant.profiles import Profile
+from service.plant.rlc import CommandSchedule, RLCPlant, Sensor, load_current
 
 BAND_SETTLE = 0.02  # +-2 % of v_ref
 HOLD_FROM_S = 0.05  # "holds" metric looks at t >= this
@@ -57,7 +56,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     N = int(round(tm.duration_s / T))
     load = Profile(scn.load, scn.base_dir)
     dist = Profile(scn.disturbance, scn.base_dir) if scn.disturbance is not None else None
-    plant = RLCPlant(scn.plant, load, dist)
+    plant = RLCPlant(scn.plant, load, dist, impl or "auto")
     sensor = Sensor(scn.sensor, scn.seed)
     core = make_core(scn.controller, scn.model, T, tm.delay_samples, impl)
     delay: deque[tuple[float, float]] = deque([(0.0, 0.0)] * tm.delay_samples)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from schemas.scenario import load_scenario, scenario_from_dict
-from service.energy import RLCEnergy
+from service.core.energy import RLCEnergy
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
@@ -58,8 +58,8 @@ def daemon_by_hand():
     """An opened daemon (loopback session, no peers) whose loop we drive by hand through _tick."""
     from clients.live import configs_from_scenario
     from schemas.component import ComponentConfig, config_from_dict
-    from service.bus import free_tcp_port
-    from service.daemon import Daemon
+    from service.daemon.bus import free_tcp_port
+    from service.daemon.daemon import Daemon
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)

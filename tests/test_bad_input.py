@@ -13,8 +13,8 @@ from clients.live import configs_from_scenario
 from schemas.codec import CMD, MEAS, Z
 from schemas.component import ComponentConfig, config_from_dict
 from schemas.scenario import load_scenario
-from service.bus import free_tcp_port
-from service.daemon import Daemon
+from service.daemon.bus import free_tcp_port
+from service.daemon.daemon import Daemon
 
 
 @pytest.fixture
@@ -163,7 +163,7 @@ def test_rejections_are_recorded_as_diagnostics_without_flooding_the_log(tmp_pat
     (it diverged) gives at most one event per reason per REJECT_EVENT_EVERY_NS of the loop's clock, each saying
     how many it stands for, while status counts every one."""
     from clients.faults import read_messages
-    from service.daemon import REJECT_EVENT_EVERY_NS
+    from service.daemon.daemon import REJECT_EVENT_EVERY_NS
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)

@@ -223,7 +223,7 @@ def test_the_plant_takes_commands_by_their_arrival_stamps_not_by_when_it_reads_t
 def test_zenoh_send_queues_are_deeper_than_zenohs_default_unless_a_config_file_says():
     """Two batches (Zenoh's default) dropped samples and commands after 1 ms stalls of a send thread here."""
     from schemas.component import ZenohConfig
-    from service.bus import TX_QUEUE_BATCHES, zenoh_config
+    from service.daemon.bus import TX_QUEUE_BATCHES, zenoh_config
 
     def depth(z):
         return json.loads(zenoh_config(z).get_json("transport/link/tx/queue/size/data"))

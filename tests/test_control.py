@@ -8,8 +8,8 @@ from conftest import SCENARIOS, scenario
 
 from schemas.scenario import ScenarioError, load_scenario
 from service.core import ControlCore, make_core
+from service.core.types import Incoming, Sample
 from service.sim import run
-from service.types import Incoming, Sample
 
 R, L, C, P, V = 0.01, 1.12e-3, 6.8e-3, 1200.0, 80.0
 AT_EQUILIBRIUM = {"initial": {"i_A": P / V, "v_V": V, "u_V": V + R * P / V}}
@@ -189,7 +189,7 @@ def test_core_replays_a_run_bit_for_bit():
     res = run(scn)
     tr = {k: v.tolist() for k, v in res.trace.items()}
     P_dot = [-float(x) for x in np.zeros(len(tr["t"]))]
-    from service.profiles import Profile
+    from service.plant.profiles import Profile
 
     load = Profile(scn.load)
     core = ControlCore(scn.controller, scn.model, 1.0 / scn.timing.control_rate_hz, scn.timing.delay_samples)
@@ -257,8 +257,8 @@ def _skipping_loop(renumber: bool, d: int = 2, n: int = 600):
     over [t_{j+d}, t_{j+d+1}]; if it is missing, the plan its predecessor carried; else u is held.
     renumber: give the core consecutive numbers instead of the plant's (what a tick-indexed history sees).
     Returns the largest |u_pred - u(t_{k+d})| and |i_pred - i(t_{k+d})| over the ticks."""
-    from service.plant import RLCPlant, load_current
-    from service.profiles import Profile
+    from service.plant.profiles import Profile
+    from service.plant.rlc import RLCPlant, load_current
     from service.sim import substeps
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml",
@@ -312,8 +312,8 @@ def _late_burst_run(late_detect_V: float, observer_gain: float = 0.0) -> tuple[f
     from pathlib import Path
 
     from service.core import make_core
-    from service.plant import RLCPlant, Sensor, load_current
-    from service.profiles import Profile
+    from service.plant.profiles import Profile
+    from service.plant.rlc import RLCPlant, Sensor, load_current
     from service.sim import substeps
 
     scn = load_scenario(Path(__file__).parents[1] / "clients" / "embedded" / "demo.toml",

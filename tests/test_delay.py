@@ -7,7 +7,7 @@ import pytest
 from conftest import SCENARIOS
 
 from schemas.scenario import load_scenario
-from service.delay import estimate_loop_delay, on_seq_grid
+from service.core.delay import estimate_loop_delay, on_seq_grid
 from service.sim import run
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import exact_energy_along, scenario
 
-from service import energy as en
+from service.core import energy as en
 from service.sim import run
 
 R, L, C = 0.01, 1.12e-3, 6.8e-3

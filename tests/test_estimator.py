@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from service.estimator import EnergyEstimator, EwLineFit
+from service.core.estimator import EnergyEstimator, EwLineFit
 
 
 def feed(fit: EwLineFit, ts, ys):

@@ -9,8 +9,8 @@ import signal
 from conftest import SCENARIOS
 
 from clients.faults import Rig, read_messages
-from clients.replay import replay
 from schemas.scenario import load_scenario
+from service.replay import replay
 
 
 def scn():
@@ -151,7 +151,7 @@ def test_a_recorder_whose_process_dies_at_once_finishes_its_file_and_exits(tmp_p
 
     out = tmp_path / "orphan.mcap"
     code = (f"import os, sys; sys.path.insert(0, {str(ROOT)!r})\n"
-            "from service.shmlog import RingRecorder\nfrom schemas.codec import CMD\n"
+            "from service.logio.ring import RingRecorder\nfrom schemas.codec import CMD\n"
             f"r = RingRecorder({str(out)!r}, {{'a/cmd': ('energyctl.Command', CMD)}}, {{}})\n"
             "for k in range(100): r.offer('a/cmd', k * 1e-4, (k, k * 1e-4, 0.0, 0.0, False))\n"
             "print(r.pid, flush=True)\nos._exit(0)\n")

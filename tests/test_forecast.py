@@ -7,10 +7,10 @@ import pytest
 from conftest import SCENARIOS
 
 from schemas.scenario import load_scenario
-from service.core import effective_gain
-from service.feasibility import announced_window, load_box, tau_prime
+from service.core.control import effective_gain
+from service.core.feasibility import announced_window, load_box, tau_prime
 from service.forecast import forecast_outgoing, widen_to_grid
-from service.profiles import Profile
+from service.plant.profiles import Profile
 from service.sim import run
 
 FEAS = SCENARIOS / "paper-feasibility.toml"
@@ -108,7 +108,7 @@ def test_the_daemons_forecast_worker_survives_its_process_being_killed():
 
     from clients.live import wait_until
     from schemas.scenario import OutgoingForecastConfig
-    from service.forecast import ForecastWorker
+    from service.daemon.forecast_worker import ForecastWorker
 
     scn = load_scenario(FEAS)
     fw = ForecastWorker(scn.model, 1e-4, 0, OutgoingForecastConfig(enabled=True), 1.0)
@@ -134,7 +134,7 @@ def test_the_daemons_forecast_worker_survives_its_process_being_killed():
 def test_the_run_time_monitor_counts_every_excursion_and_a_daemon_keeps_only_the_newest(keep_recent):
     """Each excursion of P^{r,out} from the window's incoming range is counted; offline the first ones are kept, a
     long-running daemon (keep_recent) keeps only its newest few, so its memory stays flat."""
-    from service.feasibility import FeasibilityMonitor
+    from service.core.feasibility import FeasibilityMonitor
 
     mon = FeasibilityMonitor(1.0, keep_recent=keep_recent)
     mon.set_range(0, (-100.0, 100.0, -1e3, 1e3))

@@ -17,10 +17,10 @@ from hypothesis import strategies as st
 
 from schemas.scenario import load_scenario
 from service.core import ControlCore, CoreBase, make_core
+from service.core.types import Incoming, Sample
 from service.sim import run
-from service.types import Incoming, Sample
 
-fastcore = pytest.importorskip("service.fastcore", reason="compiled core not built (no C compiler)")
+fastcore = pytest.importorskip("service.core.compiled", reason="compiled core not built (no C compiler)")
 
 CASES = [
     ("fblc", "exact", 3, []),
@@ -206,7 +206,7 @@ def test_compiled_plant_integrator_equals_python(i, v, u, r, Pa, dP, ma, dm, n_s
     """The plant's RK4 loop in C (sim and the HIL plant use it when built) is the Python loop bit for bit,
     through the resistive region below v_min and the u clip."""
     from service import _kernel
-    from service.plant import rk4_steps
+    from service.plant.rlc import rk4_steps
 
     args = (0.01, 1.12e-3, 6.8e-3, 40.0, 0.0, 200.0, float(clip), r, h, float(n_sub), Pa, dP, ma, dm, i, v, u)
     try:

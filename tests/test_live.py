@@ -17,8 +17,8 @@ from clients.query import QueryError, query
 from schemas.codec import CMD, MEAS
 from schemas.component import ComponentConfig, LoadPeerConfig, ZenohConfig, config_from_dict
 from schemas.scenario import load_scenario
-from service.bus import free_tcp_port
-from service.daemon import Daemon
+from service.daemon.bus import free_tcp_port
+from service.daemon.daemon import Daemon
 from service.sim import run
 
 
@@ -48,7 +48,7 @@ def test_lockstep_over_zenoh_reproduces_the_offline_run(tmp_path):
     cmds = read_topic(out, "/cmd")
     np.testing.assert_allclose([c["du_dt"] for c in cmds], sim["du_dt"], rtol=1e-9, atol=1e-9)
     # the daemon's own log replays bit for bit
-    from clients.replay import replay
+    from service.replay import replay
 
     r = replay(res["daemon_log"], progress=False)
     assert r["identical"] and r["compared"] == 500 and r["read_from"] == "index"
@@ -184,10 +184,10 @@ def test_a_sample_triggered_loop_answers_the_newest_queued_samples_in_order(catc
 
 
 def test_samples_arriving_while_the_loop_is_held_up_keep_only_the_newest_in_memory():
-    """The sample trigger's queue is bounded (service.daemon.MEAS_QUEUE_MAX), keeping the newest: samples that
+    """The sample trigger's queue is bounded (service.daemon.daemon.MEAS_QUEUE_MAX), keeping the newest: samples that
     arrive while the loop thread is held up cannot pile up in memory (a 10 kHz soak grew 26 MB at once), the
     dropped ones are counted in status, and the loop then answers the newest sample."""
-    from service.daemon import MEAS_QUEUE_MAX
+    from service.daemon.daemon import MEAS_QUEUE_MAX
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)
@@ -221,7 +221,7 @@ def test_sessions_use_no_shared_memory_pool_unless_asked(shared_memory):
     import glob
     import os
 
-    from service.bus import open_session
+    from service.daemon.bus import open_session
 
     def pools() -> set[str]:
         return set(glob.glob("/dev/shm/*.zenoh"))
@@ -427,7 +427,7 @@ def test_a_realtime_plant_starts_its_clock_at_the_controllers_first_answer():
     _c, plant, _l = configs_from_scenario(scn, ep, lockstep=False, rate_hz=1000.0, duration_s=0.02)
     plant.update(wait_for=[], out=None, nice=None, zenoh={"mode": "peer", "listen": [ep]})
     ctl = ZenohConfig(mode="peer", connect=[ep])
-    from service.bus import open_session
+    from service.daemon.bus import open_session
 
     s = open_session(ctl)
     arrivals: dict[int, float] = {}
@@ -465,7 +465,7 @@ QUERIER = """
 import json, sys, time
 from clients.query import ask
 from schemas.component import ZenohConfig
-from service.bus import open_session
+from service.daemon.bus import open_session
 s = open_session(ZenohConfig(mode="peer", connect=[sys.argv[1]]))
 print("ready", flush=True)
 for line in sys.stdin:  # a round of 20 queries per line, at an operator's or a dashboard's pace (100 a second at most)

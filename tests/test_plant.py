@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from schemas.scenario import PlantConfig, ProfileConfig, SensorConfig
-from service.plant import RLCPlant, Sensor
-from service.profiles import Profile
+from service.plant.profiles import Profile
+from service.plant.rlc import RLCPlant, Sensor
 
 
 def trajectory(n_sub: int, r: float = 3000.0):
@@ -49,10 +49,10 @@ def test_sensor_noise_is_seeded_and_quantised():
 
 
 def test_the_hil_plant_schedule_applies_commands_then_plans_then_holds():
-    """The realtime plant's fixed schedule (service.plant.CommandSchedule), d = 2: the command answering j acts
+    """The realtime plant's fixed schedule (service.plant.rlc.CommandSchedule), d = 2: the command answering j acts
     over period j + 2; missing, its predecessor's plan acts; with neither, u is held; a late command is dropped
     but its plan still serves the next period."""
-    from service.plant import CommandSchedule
+    from service.plant.rlc import CommandSchedule
 
     s = CommandSchedule(2)
     assert s.take(0) == (0.0, False) and s.take(1) == (0.0, False)  # nothing answered before sample 0
@@ -80,7 +80,7 @@ def test_the_schedule_never_applies_anything_but_the_command_its_plan_or_a_hold(
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    from service.plant import CommandSchedule
+    from service.plant.rlc import CommandSchedule
 
     @settings(max_examples=200, deadline=None)
     @given(d=st.integers(0, 4), fate=st.lists(st.sampled_from(["on_time", "late", "lost"]), min_size=1, max_size=60))

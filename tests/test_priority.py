@@ -31,8 +31,8 @@ def in_new_process(lines: list[str]) -> subprocess.CompletedProcess:
 def test_background_processes_run_below_the_process_that_starts_them(tmp_path):
     """The recorder's writer and the forecast worker lower themselves to their own level whatever their parent
     runs at (spawned processes inherit the parent's nice value, which a realtime daemon raises)."""
-    from service.forecast import ForecastWorker
-    from service.shmlog import RingRecorder
+    from service.daemon.forecast_worker import ForecastWorker
+    from service.logio.ring import RingRecorder
 
     rec = RingRecorder(tmp_path / "x.mcap", {"m": ("energyctl.Measurement", MEAS)}, {})
     fw = ForecastWorker(load_scenario(SCENARIOS / "paper-feasibility.toml").model, 1e-4, 0,
@@ -97,7 +97,7 @@ def test_the_recorders_writer_runs_on_the_cpus_it_is_given(tmp_path):
     from pydantic import ValidationError
 
     from schemas.component import ComponentConfig
-    from service.shmlog import RingRecorder
+    from service.logio.ring import RingRecorder
 
     have = sorted(os.sched_getaffinity(0))
     if len(have) < 2:
@@ -125,7 +125,7 @@ def test_a_configured_timer_slack_reaches_later_threads_and_the_background_proce
                           "from schemas.codec import MEAS",
                           "from schemas.component import ComponentConfig",
                           "from service import priority",
-                          "from service.shmlog import RingRecorder",
+                          "from service.logio.ring import RingRecorder",
                           "stop = start_process(ComponentConfig(id='x', timer_slack_ns=2000), 'run')",
                           "seen = []",
                           "t = threading.Thread(target=lambda: seen.append(priority.timer_slack_ns()))",

@@ -5,9 +5,9 @@ from __future__ import annotations
 from conftest import SCENARIOS
 
 from clients.cli import main
-from clients.replay import replay
 from schemas.scenario import load_scenario
-from service.recorder import write_sim_mcap
+from service.logio.mcapfile import write_sim_mcap
+from service.replay import replay
 from service.sim import run
 
 
@@ -40,7 +40,7 @@ def test_what_if_writes_a_new_log_that_itself_replays(tmp_path):
 WRITER = """
 import sys, time
 from schemas.codec import TICK_IN
-from service.shmlog import RingRecorder
+from service.logio.ring import RingRecorder
 if __name__ == "__main__":  # the recorder process is spawned: it re-imports this module
     path, n = sys.argv[1], int(sys.argv[2])
     rec = RingRecorder(path, {"x/z_in": ("energyctl.TickInput", TICK_IN)}, {"core": {"json": "{}"}},
@@ -201,7 +201,7 @@ def test_fast_log_reader_gives_the_general_readers_arrays(tmp_path):
     import numpy as np
     import pytest
 
-    from clients import replay as rp
+    from service import replay as rp
 
     if rp._mcapscan is None:
         pytest.skip("log scanner not built")
@@ -224,7 +224,7 @@ def test_fast_log_reader_gives_the_general_readers_arrays(tmp_path):
         assert np.array_equal(a[needed], b[needed])
     assert len(np.concatenate(rp._read_fast(cut).rows)) < len(np.concatenate(rp._read_fast(log).rows))
 
-    from service.recorder import McapFile
+    from service.logio.mcapfile import McapFile
 
     odd = tmp_path / "odd.mcap"  # same topics, keys in another order: not the recorder's template
     f = McapFile(odd)
@@ -245,8 +245,8 @@ def test_tick_index_gives_the_json_channels_inputs_and_is_used_only_when_complet
 
     import numpy as np
 
-    from clients import replay as rp
     from clients.bench_tick import _trace, drive_daemon
+    from service import replay as rp
 
     scn, tr = _trace(str(SCENARIOS / "paper-varying-load.toml"), 3000)
     faster = scn.controller.model_copy(update={"K_per_s": 900.0})

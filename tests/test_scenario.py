@@ -8,7 +8,7 @@ import pytest
 from conftest import SCENARIOS
 
 from schemas.scenario import Scenario, ScenarioError, load_scenario, scenario_from_dict
-from service.profiles import Profile
+from service.plant.profiles import Profile
 
 
 def test_shipped_scenarios_load_and_keep_true_and_model_parameters_apart(paper_files):

@@ -15,8 +15,8 @@ from clients.secure import ROUTER_FILE, run_router, tls_endpoint, write_profile
 from schemas.codec import CMD, MEAS
 from schemas.component import ComponentConfig, ZenohConfig, config_from_dict
 from schemas.scenario import ScenarioError, load_scenario
-from service.bus import free_tcp_port, open_session
-from service.daemon import Daemon
+from service.daemon.bus import free_tcp_port, open_session
+from service.daemon.daemon import Daemon
 
 P = "energyctl"
 

@@ -19,7 +19,7 @@ from mcap.reader import make_reader
 
 from schemas.codec import CMD, MEAS, VERSION
 
-pytest.importorskip("service.fastcore", reason="compiled core not built (no C compiler)")
+pytest.importorskip("service.core.compiled", reason="compiled core not built (no C compiler)")
 
 N = 600
 
@@ -94,7 +94,7 @@ def test_the_compiled_tick_publishes_records_and_remembers_what_the_python_lines
 
 
 def _ring(slots: int):
-    from service.shmlog import _HDR, SLOT
+    from service.logio.ring import _HDR, SLOT
 
     return bytearray(_HDR.size + slots * SLOT)
 
@@ -106,8 +106,8 @@ def test_the_tick_writers_slot_is_offer_groups_and_a_full_ring_is_a_drop():
 
     from schemas.codec import TICK_IN
     from schemas.scenario import load_scenario
-    from service.fastcore import CompiledCore
-    from service.shmlog import _HDR, GROUP_BASE, SLOT
+    from service.core.compiled import CompiledCore
+    from service.logio.ring import _HDR, GROUP_BASE, SLOT
 
     scn = load_scenario(ROOT / "clients" / "embedded" / "demo.toml")
     core = CompiledCore(scn.controller, scn.model, 1e-4, 2)
@@ -148,7 +148,7 @@ def _accept_writer():
     from service._kernel import TickWriter
 
     from schemas.scenario import load_scenario
-    from service.fastcore import CompiledCore
+    from service.core.compiled import CompiledCore
 
     scn = load_scenario(ROOT / "clients" / "embedded" / "demo.toml")
     core = CompiledCore(scn.controller, scn.model, 1e-4, 2)

@@ -16,9 +16,8 @@ import math
 import numpy as np
 
 from schemas.scenario import PlantConfig, SensorConfig
-
-from .profiles import Profile
-from .types import Sample
+from service.core.types import Sample
+from service.plant.profiles import Profile
 
 
 def load_current(P_W: float, v_V: float, v_min_V: float) -> float:
@@ -31,9 +30,11 @@ def load_current(P_W: float, v_V: float, v_min_V: float) -> float:
 class RLCPlant:
     """Fixed-step RK4 integration of the circuit; state t (s), i (A), v (V), u (V)."""
 
-    __slots__ = ("R", "L", "C", "u_min", "u_max", "v_min", "load", "dist", "t", "i", "v", "u")
+    __slots__ = ("R", "L", "C", "u_min", "u_max", "v_min", "load", "dist", "t", "i", "v", "u", "_steps")
 
-    def __init__(self, cfg: PlantConfig, load: Profile, disturbance: Profile | None = None):
+    def __init__(self, cfg: PlantConfig, load: Profile, disturbance: Profile | None = None, impl: str = "auto"):
+        """impl: the integrator, "c" (compiled, bit-identical), "python" (rk4_steps) or "auto" (c if built)."""
+        self._steps = integrator(impl)
         self.R, self.L, self.C = cfg.R_ohm, cfg.L_H, cfg.C_F
         self.u_min, self.u_max = cfg.source.u_min_V, cfg.source.u_max_V
         self.v_min = cfg.v_cpl_min_V
@@ -67,7 +68,7 @@ class RLCPlant:
             ma = dm = 0.0
         u_end = u + r * T
         clip = not (umin <= u <= umax and umin <= u_end <= umax)
-        self.i, self.v, self.u = plant_steps(R, L, C, vmin, umin, umax, float(clip), r, h, float(n_sub), Pa, dP, ma,
+        self.i, self.v, self.u = self._steps(R, L, C, vmin, umin, umax, float(clip), r, h, float(n_sub), Pa, dP, ma,
                                              dm, i, v, u)
         self.t = t + T
 
@@ -122,20 +123,20 @@ def rk4_steps(R: float, L: float, C: float, vmin: float, umin: float, umax: floa
     return i, v, u
 
 
-def _compiled_steps():
-    """The compiled integrator unless not built or ENERGYCTL_CORE=python (the reference everywhere)."""
-    import os
-
-    if os.environ.get("ENERGYCTL_CORE", "auto") == "python":
+def integrator(impl: str = "auto"):
+    """The RK4 integrator: the compiled twin for "c" (ImportError if not built), the Python reference for
+    "python", and for "auto" the compiled one when it was built."""
+    if impl not in ("auto", "c", "python"):
+        raise ValueError(f"plant implementation {impl!r}: expected auto, c or python")
+    if impl == "python":
         return rk4_steps
     try:
-        from ._kernel import plant_steps as compiled
+        from service._kernel import plant_steps as compiled
     except ImportError:
+        if impl == "c":
+            raise
         return rk4_steps
     return compiled
-
-
-plant_steps = _compiled_steps()
 
 
 class CommandSchedule:

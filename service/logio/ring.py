@@ -47,7 +47,7 @@ IDLE_SLEEP_S = 0.005
 
 
 class RingRecorder:
-    """Same interface as service.recorder.Recorder: offer(topic, t, values) and close()."""
+    """Same interface as service.logio.mcapfile.Recorder: offer(topic, t, values) and close()."""
 
     def __init__(self, path: str | Path, topics: dict[str, tuple[str, Codec | None]],
                  metadata: dict[str, dict[str, str]], slots: int = 1 << 17, chunk_size: int = 1 << 20,
@@ -275,8 +275,8 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
     import importlib
     from queue import Empty
 
+    from service.logio.mcapfile import McapFile
     from service.priority import RECORDER_NICE, background
-    from service.recorder import McapFile
 
     background(RECORDER_NICE)  # below the process it records: that one has a loop to keep
     if cpus:  # off the loop's CPU (RingRecorder's writer_cpus; the daemon's config checked they exist)

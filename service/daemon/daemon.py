@@ -28,14 +28,13 @@ from pydantic import ValidationError
 from schemas.codec import CMD, MEAS, VERSION, DecodeError, Z
 from schemas.component import ComponentConfig
 from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, format_validation_error
-
-from . import __version__
-from .bus import key, latest, open_session, publisher, queued
-from .core import core_metadata, effective_gain, make_core
-from .delay import loop_delay_report
-from .feasibility import FeasibilityMonitor, incoming_range, tau_prime
-from .forecast import ForecastWorker
-from .priority import fill_tuple_free_lists
+from service import __version__
+from service.core import core_metadata, effective_gain, make_core
+from service.core.delay import loop_delay_report
+from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
+from service.daemon.bus import key, latest, open_session, publisher, queued
+from service.daemon.forecast_worker import ForecastWorker
+from service.priority import fill_tuple_free_lists
 
 _CMD_PACK, _CMD_MAGIC, _VERSION = CMD.struct.pack, CMD.magic, VERSION  # CMD.encode without its call, on the tick
 _now_ns = time.monotonic_ns
@@ -279,9 +278,8 @@ class Daemon:
         from datetime import UTC, datetime
 
         from schemas.codec import EST, LOOP, TICK_IN
-
-        from .recorder import git_revision
-        from .shmlog import RingRecorder
+        from service.logio.mcapfile import git_revision
+        from service.logio.ring import RingRecorder
 
         c = self.cfg
         base = f"{c.prefix}/{c.id}"
@@ -312,7 +310,7 @@ class Daemon:
         k = getattr(self.core, "_k", None)
         if k is None:
             return None
-        from ._kernel import TickWriter
+        from service._kernel import TickWriter
 
         ring = self.recorder.ring_args(0) if self.recorder is not None else {}
         c = self.cfg

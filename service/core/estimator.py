@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from .energy import RLCEnergy
+from service.core.energy import RLCEnergy
 
 
 class EwLineFit:

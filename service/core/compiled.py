@@ -9,11 +9,10 @@ doubles; the views below read them on demand, so a step costs one call, not twen
 from __future__ import annotations
 
 from schemas.scenario import CircuitParams, ControllerConfig
-
-from ._kernel import OUT_LEN, Kernel
-from .core import CoreBase
-from .energy import RLCEnergy
-from .types import Incoming, Sample
+from service._kernel import OUT_LEN, Kernel
+from service.core.control import CoreBase
+from service.core.energy import RLCEnergy
+from service.core.types import Incoming, Sample
 
 KIND_CODE = {"fixed": 0, "lqr": 1, "bm": 2, "fblc": 3, "smc": 4}
 # output buffer layout: service/_kernel.c, enum O_*

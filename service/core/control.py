@@ -45,10 +45,9 @@ from __future__ import annotations
 import math
 
 from schemas.scenario import CircuitParams, ControllerConfig
-
-from .energy import RLCEnergy
-from .estimator import EnergyEstimator
-from .types import Incoming, Sample
+from service.core.energy import RLCEnergy
+from service.core.estimator import EnergyEstimator
+from service.core.types import Incoming, Sample
 
 _PRED_STEP_S = 2.5e-4  # longest RK4 step of the controller's own prediction
 
@@ -480,24 +479,3 @@ class ControlCore(CoreBase):
         r = min(max(r, (u_min - u_p) / T), (u_max - u_p) / T)  # u stays in range ...
         r = min(max(r, -r_max), r_max)  # ... unless that would break the slew limit
         return r, raw, u_z
-
-
-def make_core(cfg: ControllerConfig, model: CircuitParams, period_s: float, loop_delay_samples: int = 0,
-              impl: str | None = None) -> CoreBase:
-    """The core every driver uses. impl: "c" (the compiled twin, bit-identical), "python" (the reference), or
-    "auto" (default: "c" if it was built, else "python"). The environment variable ENERGYCTL_CORE sets the
-    default, so a whole run (daemon, sim, replay) can be switched without a config change."""
-    import os
-
-    impl = impl or os.environ.get("ENERGYCTL_CORE", "auto")
-    if impl not in ("auto", "c", "python"):
-        raise ValueError(f"core implementation {impl!r}: expected auto, c or python")
-    if impl != "python":
-        try:
-            from .fastcore import CompiledCore
-        except ImportError as e:
-            if impl == "c":
-                raise ImportError(f"the compiled core (service/_kernel.c) is not built: {e}") from e
-        else:
-            return CompiledCore(cfg, model, period_s, loop_delay_samples)
-    return ControlCore(cfg, model, period_s, loop_delay_samples)

@@ -11,7 +11,7 @@ ticks are keyed by (epoch, seq) and the core is re-initialised at each new epoch
 Epochs come from the measurement stream, which the recorder writes in tick order; events travel on a
 side queue and are written when the ring is idle, so their place in the file is not their place in time.
 
-Speed: a daemon log's tick index (service.shmlog.TickIndex: one row of doubles per tick in zstd attachments,
+Speed: a daemon log's tick index (service.logio.ring.TickIndex: one row of doubles per tick in zstd attachments,
 used only when it accounts for every tick) is read without touching the JSON chunks; otherwise the log is
 read into arrays (clients/_mcapscan.c parses the recorder's flat JSON without a Python object per message;
 without it, mcap + json do the same, slower). The core steps each stretch between config changes and
@@ -39,7 +39,7 @@ from schemas.scenario import ControllerConfig, apply_overrides, scenario_from_di
 from service.core import make_core
 
 try:
-    from clients import _mcapscan
+    from service.logio import _mcapscan
 except ImportError:  # not built (no C compiler): the general reader is used
     _mcapscan = None
 if sys.byteorder != "little" or (_mcapscan is not None and _mcapscan.ROW != 9):
@@ -237,10 +237,10 @@ def _read_general(path: str | Path, data=None) -> LogData:
 
 
 def _read_index(path: str | Path, data: bytes) -> LogData | None:
-    """A log's replay inputs from its tick index (service.shmlog.TickIndex attachments), or None when it has
+    """A log's replay inputs from its tick index (service.logio.ring.TickIndex attachments), or None when it has
     none or the index does not account for every tick of the file (no summary: a killed writer; a dropped
     ring slot; a tick split by rotation): then the JSON channels are read instead."""
-    from service.shmlog import TickIndex
+    from service.logio.ring import TickIndex
 
     topics: dict[int, str] = {}
     counts: dict[int, int] | None = None
@@ -477,7 +477,7 @@ def _controller(base: dict, overrides: list[str]) -> ControllerConfig:
 
 def _write(out: str, core_meta: dict, ctl: ControllerConfig, tk: Ticks, du: np.ndarray, du_next: np.ndarray) -> None:
     from service.core import core_metadata
-    from service.recorder import McapFile
+    from service.logio.mcapfile import McapFile
 
     f = McapFile(out)
     model = scenario_from_dict({"model": core_meta["model"]}).model

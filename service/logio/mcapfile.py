@@ -8,8 +8,7 @@ from pathlib import Path
 from mcap.writer import CompressionType, Writer
 
 from schemas.messages import MESSAGE_MODELS, json_schema
-
-from . import __version__
+from service import __version__
 
 
 def git_revision() -> str:
@@ -70,7 +69,7 @@ class McapFile:
 
 def write_sim_mcap(path: str | Path, result, prefix: str = "energyctl/sim") -> Path:
     """Write a SimResult: channels <prefix>/meas, /cmd, /est, /plant and a ``scenario`` metadata record."""
-    from .core import core_metadata
+    from service.core.control import core_metadata
 
     scn = result.scenario
     core = core_metadata(scn.controller, scn.model, 1.0 / scn.timing.control_rate_hz, result.delay_compensation)

@@ -1,4 +1,4 @@
-/* Compiled twin of service/core.py's ControlCore.step (and the estimator it calls).
+/* Compiled twin of service/core/control.py's ControlCore.step (and the estimator it calls).
  *
  * Same operations in the same order as the Python reference, IEEE double, no fused multiply-add
  * (built with -ffp-contract=off), libm's exp and sqrt (the ones Python's math module calls): the
@@ -11,53 +11,7 @@
  * inside the prediction), C gives inf or NaN, which the step's finiteness check turns into
  * du/dt = 0: the safe answer.
  */
-#define PY_SSIZE_T_CLEAN
-#include <Python.h>
-#include <math.h>
-#include <string.h>
-
-#define PYMIN(a, b) ((b) < (a) ? (b) : (a))
-#define PYMAX(a, b) ((b) > (a) ? (b) : (a))
-
-enum { K_FIXED = 0, K_LQR = 1, K_BM = 2, K_FBLC = 3, K_SMC = 4 };
-
-/* Output buffer layout (doubles), shared with service/fastcore.py. */
-enum {
-    O_DU = 0, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1,
-    O_SEQ, O_T, O_STEPS, O_COUNT, O_HAS_EST,
-    O_EST = 17, /* 18 RLCEnergy fields, in its __slots__ order */
-    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42, O_DU_NEXT = 43, O_LATE = 44,
-    O_N = 45
-};
-enum { E_E = 0, E_ET, E_D, E_TAU, E_P, E_PDOT, E_PU, E_QDU, E_PL, E_QDL, E_PM, E_YZ, E_YZB, E_ETA, E_PRO, E_QRO,
-       E_PROP, E_QROP };
-
-typedef struct {
-    PyObject_HEAD
-    /* model and timing */
-    double R, L, C, T, tau;
-    int d, n_pred;
-    /* gains and limits (set_params) */
-    int kind, continuous, cancel_Et, plan;
-    double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC, late_tol;
-    double obs; /* observer_gain (0: the prediction starts from the raw sample) */
-    int load_ref; /* load_power: 1 = -P_in (the neighbours' announced power), 0 = v i_2 measured */
-    /* the observer: seq of its last estimate, the estimate (i, v, u) and the load power (W) carried with it */
-    double x_seq, x_hat[3], x_P;
-    /* late-command detection: the last step's seq and measured u, and the verdict */
-    double last_seq_u, last_u;
-    int late;
-    /* estimator: EwLineFit over (i, v, i_2) and the z_out integrals */
-    int has_t;
-    double t_last, S0, S1, S2, Sy[3], Say[3], ref[3];
-    int has_last;
-    double last_t, last_P, last_Q;
-    /* the last d + 1 samples answered: pending[3 j] = s, [3 j + 1] = du/dt answering s, [3 j + 2] = du/dt planned
-       for the period after, at j = s mod (d + 1) (s NaN: none); previous command */
-    double *pending;
-    double r_prev;
-    double o[O_N];
-} Kernel;
+#include "kernel.h"
 
 static void predict(double *pi, double *pv, double *pu, double P, double r, double T, int n, double R, double L,
                     double C)
@@ -405,8 +359,8 @@ static void observe(Kernel *k, double seq, double si_, double sv, double su, dou
 }
 
 /* ControlCore.step; returns 1 if the estimator took the sample. */
-static int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double su, double si2, double P_in,
-                       double P_in_dot)
+int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double su, double si2, double P_in,
+                double P_in_dot)
 {
     const double R = k->R, L = k->L, C = k->C, T = k->T;
     const double u_min = k->u_min, u_max = k->u_max;
@@ -530,7 +484,7 @@ static PyObject *Kernel_reset(Kernel *self, PyObject *Py_UNUSED(ignored))
 }
 
 /* n float arguments of a METH_FASTCALL function into x; 0 with an exception set if they are not that */
-static int float_args(PyObject *const *args, Py_ssize_t nargs, int n, double *x, const char *usage)
+int float_args(PyObject *const *args, Py_ssize_t nargs, int n, double *x, const char *usage)
 {
     if (nargs != n) {
         PyErr_Format(PyExc_TypeError, "%s takes %d arguments", usage, n);
@@ -556,7 +510,7 @@ static PyObject *Kernel_step(Kernel *self, PyObject *const *args, Py_ssize_t nar
 
 /* The outgoing rates at the port after a step, for the daemon's tick: P_r_out_port as a new float (None before the
  * first estimate), and Qdot_r_out_port into *qdot (0 then). */
-static PyObject *port_rates(const double *o, double *qdot)
+PyObject *port_rates(const double *o, double *qdot)
 {
     if (o[O_HAS_EST] == 0.0) {
         *qdot = 0.0;
@@ -684,7 +638,7 @@ static PyMethodDef Kernel_methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static PyTypeObject KernelType = {
+PyTypeObject KernelType = {
     PyVarObject_HEAD_INIT(NULL, 0)
     .tp_name = "service._kernel.Kernel",
     .tp_basicsize = sizeof(Kernel),
@@ -696,328 +650,3 @@ static PyTypeObject KernelType = {
     .tp_methods = Kernel_methods,
     .tp_as_buffer = &Kernel_as_buffer,
 };
-
-/* ------------------------------------------------------------------ the daemon's stepped tick */
-
-/* TickWriter: what service/daemon.py's _tick does with a stepped sample once its checks passed and P^{r,in} is
- * formed (its Python lines for the Python core are the reference; tests/test_tickwriter.py checks the bytes are the
- * same): the kernel's step, the command payload (schemas/codec.py CMD), the loop-delay history entry (seq, measured
- * u, du/dt), and the recorder's grouped slot of meas, z_in and cmd (service/shmlog.py RingRecorder.offer_group,
- * group 0), in one call. The layouts are checked against the codecs' struct formats at construction. */
-
-#define MEAS_FORMAT "<BBQddddd"
-#define CMD_FORMAT "<BBQdddB"
-#define GROUP_FORMAT "<BdQdddddQdddBQdddB"
-enum { MEAS_SIZE = 50, CMD_SIZE = 35, GROUP_SIZE = 123, RING_HDR = 24, RING_SLOT = 128, RING_FAILED = 17 };
-
-typedef struct {
-    PyObject_HEAD
-    Kernel *k;
-    Py_buffer hseq, hu, hr, ring, widx;
-    int has_ring;
-    long long slots, hist_mask;
-    unsigned char cmd_magic, version, group_id, meas_magic;
-    int has_meas;  /* accept() configured */
-    double v_min, v_max, i_max;
-} TickWriter;
-
-static void put_u64(unsigned char *p, double x) { uint64_t q = (uint64_t)x; memcpy(p, &q, 8); }
-static void put_f64(unsigned char *p, double x) { memcpy(p, &x, 8); }
-
-static void TickWriter_release(TickWriter *self)
-{
-    if (self->hseq.obj) PyBuffer_Release(&self->hseq);
-    if (self->hu.obj) PyBuffer_Release(&self->hu);
-    if (self->hr.obj) PyBuffer_Release(&self->hr);
-    if (self->ring.obj) PyBuffer_Release(&self->ring);
-    if (self->widx.obj) PyBuffer_Release(&self->widx);
-    self->has_ring = 0;
-}
-
-/* TickWriter(kernel, hist_seq, hist_u, hist_r, cmd_format, cmd_magic, version, ring=None, ring_index=None, slots=0,
- *            group_id=0, group_format="", meas_format="", meas_magic=0, v_min=0, v_max=0, i_max=0) */
-static int TickWriter_init(TickWriter *self, PyObject *args, PyObject *kw)
-{
-    static char *names[] = {"kernel", "hist_seq", "hist_u", "hist_r", "cmd_format", "cmd_magic", "version", "ring",
-                            "ring_index", "slots", "group_id", "group_format", "meas_format", "meas_magic", "v_min",
-                            "v_max", "i_max", NULL};
-    PyObject *kern, *hs, *hu, *hr, *ring = Py_None, *widx = Py_None;
-    const char *cmd_fmt, *group_fmt = "", *meas_fmt = "";
-    int magic, version, group_id = 0, meas_magic = 0;
-    long long slots = 0;
-    double v_min = 0.0, v_max = 0.0, i_max = 0.0;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLissiddd", names, &KernelType, &kern, &hs, &hu, &hr,
-                                     &cmd_fmt, &magic, &version, &ring, &widx, &slots, &group_id, &group_fmt,
-                                     &meas_fmt, &meas_magic, &v_min, &v_max, &i_max))
-        return -1;
-    TickWriter_release(self);
-    if (strcmp(cmd_fmt, CMD_FORMAT) != 0) {
-        PyErr_Format(PyExc_ValueError, "TickWriter: the command layout is %s, compiled for " CMD_FORMAT, cmd_fmt);
-        return -1;
-    }
-    self->has_meas = meas_fmt[0] != 0;
-    if (self->has_meas && strcmp(meas_fmt, MEAS_FORMAT) != 0) {
-        PyErr_Format(PyExc_ValueError, "TickWriter: the measurement layout is %s, compiled for " MEAS_FORMAT, meas_fmt);
-        return -1;
-    }
-    self->meas_magic = (unsigned char)meas_magic;
-    self->v_min = v_min; self->v_max = v_max; self->i_max = i_max;
-    if (PyObject_GetBuffer(hs, &self->hseq, PyBUF_WRITABLE) < 0 || PyObject_GetBuffer(hu, &self->hu, PyBUF_WRITABLE)
-        < 0 || PyObject_GetBuffer(hr, &self->hr, PyBUF_WRITABLE) < 0)
-        return -1;
-    long long n = self->hseq.len / 8;
-    if (n < 1 || (n & (n - 1)) || self->hu.len != n * 8 || self->hr.len != n * 8) {
-        PyErr_SetString(PyExc_ValueError, "TickWriter: three histories of one power-of-two length of 8-byte items");
-        return -1;
-    }
-    self->hist_mask = n - 1;
-    if (ring != Py_None) {
-        if (strcmp(group_fmt, GROUP_FORMAT) != 0) {
-            PyErr_Format(PyExc_ValueError, "TickWriter: the recorder group layout is %s, compiled for " GROUP_FORMAT,
-                         group_fmt);
-            return -1;
-        }
-        if (PyObject_GetBuffer(ring, &self->ring, PyBUF_WRITABLE) < 0 ||
-            PyObject_GetBuffer(widx, &self->widx, PyBUF_WRITABLE) < 0)
-            return -1;
-        if (slots < 1 || self->ring.len < RING_HDR + slots * RING_SLOT || self->widx.len != 8) {
-            PyErr_SetString(PyExc_ValueError, "TickWriter: ring shorter than its slots, or index not one int64");
-            return -1;
-        }
-        self->has_ring = 1;
-    }
-    Py_INCREF(kern);
-    Py_XSETREF(self->k, (Kernel *)kern);
-    self->slots = slots;
-    self->cmd_magic = (unsigned char)magic;
-    self->version = (unsigned char)version;
-    self->group_id = (unsigned char)group_id;
-    return 0;
-}
-
-static void TickWriter_dealloc(TickWriter *self)
-{
-    TickWriter_release(self);
-    Py_XDECREF(self->k);
-    Py_TYPE(self)->tp_free((PyObject *)self);
-}
-
-/* step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot) -> (command payload, du_dt, du_dt_next, limited, late,
- * P_r_out_port or None, Qdot_r_out_port, dropped: the ring was full) */
-static PyObject *TickWriter_step(TickWriter *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    double x[8];
-    if (!float_args(args, nargs, 8, x, "step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot)"))
-        return NULL;
-    if (self->k == NULL || self->hseq.obj == NULL) {
-        PyErr_SetString(PyExc_RuntimeError, "TickWriter: released");
-        return NULL;
-    }
-    Kernel *k = self->k;
-    kernel_step(k, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
-    const double *o = k->o;
-    const double seq = x[0], t = x[1], du = o[O_DU], dn = o[O_DU_NEXT];
-    const unsigned char lim = o[O_LIMITED] != 0.0;
-    unsigned char cmd[CMD_SIZE];
-    cmd[0] = self->cmd_magic;
-    cmd[1] = self->version;
-    put_u64(cmd + 2, seq); put_f64(cmd + 10, t); put_f64(cmd + 18, du); put_f64(cmd + 26, dn);
-    cmd[34] = lim;
-    long long j = (long long)seq & self->hist_mask;
-    ((int64_t *)self->hseq.buf)[j] = (int64_t)seq;
-    ((double *)self->hu.buf)[j] = x[4];
-    ((double *)self->hr.buf)[j] = du;
-    int dropped = 0;
-    if (self->has_ring) {
-        unsigned char *base = self->ring.buf;
-        if (!base[RING_FAILED]) {  /* the writer failed: nobody empties the ring (RingRecorder.offer) */
-            int64_t *w = self->widx.buf;
-            unsigned char *slot = base + RING_HDR + (*w % self->slots) * RING_SLOT;
-            if (__atomic_load_n(slot, __ATOMIC_ACQUIRE)) {
-                dropped = 1;
-            } else {
-                unsigned char *p = slot + 1;
-                p[0] = self->group_id;
-                put_f64(p + 1, t);
-                p += 9;  /* meas: seq, t, i, v, u, i_load */
-                put_u64(p, seq);
-                for (int m = 1; m < 6; m++) put_f64(p + 8 * m, x[m]);
-                p += 48;  /* z_in: seq, t, P_r_in, P_r_in_dot, stepped */
-                put_u64(p, seq); put_f64(p + 8, t); put_f64(p + 16, x[6]); put_f64(p + 24, x[7]);
-                p[32] = 1;
-                p += 33;  /* cmd: seq, t, du/dt, du/dt next, limited */
-                memcpy(p, cmd + 2, CMD_SIZE - 2);
-                __atomic_store_n(slot, (unsigned char)1, __ATOMIC_RELEASE);  /* publish: the payload is complete */
-                *w += 1;
-            }
-        }
-    }
-    PyObject *payload = PyBytes_FromStringAndSize((const char *)cmd, CMD_SIZE);
-    if (payload == NULL)
-        return NULL;
-    double qdot;
-    PyObject *P_out = port_rates(o, &qdot);
-    if (P_out == NULL) {
-        Py_DECREF(payload);
-        return NULL;
-    }
-    return Py_BuildValue("NddOONdO", payload, du, dn, lim ? Py_True : Py_False, o[O_LATE] != 0.0 ? Py_True : Py_False,
-                         P_out, qdot, dropped ? Py_True : Py_False);
-}
-
-/* accept(payload, last_seq, last_t) -> the measurement's values (seq, t, i, v, u, i_load), exactly as schemas.codec
- * MEAS.decode gives them, when the daemon's checks in _tick would take it as the next ordinary sample: well formed
- * and finite, v in [v_min, v_max], |i| and |i_load| <= i_max, seq after last_seq >= 0 (not the first sample or a
- * restart), t after last_t; else None, and the Python checks decide (and name the reason). */
-static PyObject *TickWriter_accept(TickWriter *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    if (nargs != 3) {
-        PyErr_SetString(PyExc_TypeError, "accept(payload, last_seq, last_t) takes 3 arguments");
-        return NULL;
-    }
-    if (!self->has_meas) {
-        PyErr_SetString(PyExc_RuntimeError, "TickWriter: no measurement layout given");
-        return NULL;
-    }
-    long long last_seq = PyLong_AsLongLong(args[1]);
-    double last_t = PyFloat_AsDouble(args[2]);
-    if (PyErr_Occurred())
-        return NULL;
-    if (!PyBytes_Check(args[0]) || PyBytes_GET_SIZE(args[0]) != MEAS_SIZE || last_seq < 0)
-        Py_RETURN_NONE;
-    const unsigned char *p = (const unsigned char *)PyBytes_AS_STRING(args[0]);
-    if (p[0] != self->meas_magic || p[1] != self->version)
-        Py_RETURN_NONE;
-    uint64_t seq;
-    double x[5];
-    memcpy(&seq, p + 2, 8);
-    memcpy(x, p + 10, sizeof(x));
-    for (int j = 0; j < 5; j++)
-        if (!isfinite(x[j]))
-            Py_RETURN_NONE;
-    if (!(self->v_min <= x[2] && x[2] <= self->v_max) || fabs(x[1]) > self->i_max || fabs(x[4]) > self->i_max)
-        Py_RETURN_NONE;
-    if (seq > (uint64_t)INT64_MAX || (long long)seq <= last_seq || !(x[0] > last_t))
-        Py_RETURN_NONE;
-    return Py_BuildValue("(Kddddd)", (unsigned long long)seq, x[0], x[1], x[2], x[3], x[4]);
-}
-
-static PyObject *TickWriter_close(TickWriter *self, PyObject *Py_UNUSED(ignored))
-{
-    TickWriter_release(self);
-    Py_RETURN_NONE;
-}
-
-static PyMethodDef TickWriter_methods[] = {
-    {"step", (PyCFunction)(void (*)(void))TickWriter_step, METH_FASTCALL,
-     "step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot) -> (command payload, du_dt, du_dt_next, limited, late, "
-     "P_r_out_port or None, Qdot_r_out_port, dropped)"},
-    {"accept", (PyCFunction)(void (*)(void))TickWriter_accept, METH_FASTCALL,
-     "accept(payload, last_seq, last_t) -> (seq, t, i, v, u, i_load) of an ordinary next sample, else None"},
-    {"close", (PyCFunction)TickWriter_close, METH_NOARGS, "release the buffers (before the recorder closes its ring)"},
-    {NULL, NULL, 0, NULL},
-};
-
-static PyTypeObject TickWriterType = {
-    PyVarObject_HEAD_INIT(NULL, 0)
-    .tp_name = "service._kernel.TickWriter",
-    .tp_basicsize = sizeof(TickWriter),
-    .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "The daemon's stepped tick after its checks: kernel step, command payload, history, recorder slot.",
-    .tp_new = PyType_GenericNew,
-    .tp_init = (initproc)TickWriter_init,
-    .tp_dealloc = (destructor)TickWriter_dealloc,
-    .tp_methods = TickWriter_methods,
-};
-
-/* ------------------------------------------------------------------ the plant's integrator */
-
-/* plant_steps(R, L, C, v_min, u_min, u_max, clip, r, h, n_sub, Pa, dP, ma, dm, i, v, u) -> (i, v, u):
- * service/plant.py RLCPlant.advance's RK4 loop, operation for operation (the HIL plant and sim at 10 kHz spent
- * most of their time in it). */
-static PyObject *plant_steps(PyObject *Py_UNUSED(mod), PyObject *const *args, Py_ssize_t nargs)
-{
-    double x[17];
-    if (!float_args(args, nargs, 17, x, "plant_steps(R, L, C, v_min, u_min, u_max, clip, r, h, n_sub, Pa, dP, ma, dm, "
-                                        "i, v, u)"))
-        return NULL;
-    const double R = x[0], L = x[1], C = x[2], vmin = x[3], umin = x[4], umax = x[5], r = x[7], h = x[8];
-    const int clip = x[6] != 0.0;
-    const long n_sub = (long)x[9];
-    const double Pa = x[10], dP = x[11], ma = x[12], dm = x[13];
-    double i = x[14], v = x[15], u = x[16];
-    const double hh = 0.5 * h, vmin2 = vmin * vmin;
-    for (long k = 0; k < n_sub; k++) {
-        double P0 = Pa + (double)k * dP;
-        double P1 = P0 + dP;
-        double Pm = P0 + 0.5 * dP;
-        double m0 = ma + (double)k * dm;
-        double mm = m0 + 0.5 * dm;
-        double m1 = m0 + dm;
-        double um_, ub;
-        if (clip) {
-            um_ = PYMIN(PYMAX(u + r * hh, umin), umax);
-            ub = PYMIN(PYMAX(u + r * h, umin), umax);
-        } else {
-            um_ = u + r * hh;
-            ub = u + r * h;
-        }
-        double i2 = v >= vmin ? P0 / v : P0 * v / vmin2;
-        double ki1 = (u + m0 - R * i - v) / L;
-        double kv1 = (i - i2) / C;
-        double ii = i + hh * ki1;
-        double vv = v + hh * kv1;
-        i2 = vv >= vmin ? Pm / vv : Pm * vv / vmin2;
-        double ki2 = (um_ + mm - R * ii - vv) / L;
-        double kv2 = (ii - i2) / C;
-        ii = i + hh * ki2;
-        vv = v + hh * kv2;
-        i2 = vv >= vmin ? Pm / vv : Pm * vv / vmin2;
-        double ki3 = (um_ + mm - R * ii - vv) / L;
-        double kv3 = (ii - i2) / C;
-        ii = i + h * ki3;
-        vv = v + h * kv3;
-        i2 = vv >= vmin ? P1 / vv : P1 * vv / vmin2;
-        double ki4 = (ub + m1 - R * ii - vv) / L;
-        double kv4 = (ii - i2) / C;
-        i += h / 6.0 * (ki1 + 2.0 * ki2 + 2.0 * ki3 + ki4);
-        v += h / 6.0 * (kv1 + 2.0 * kv2 + 2.0 * kv3 + kv4);
-        u = ub;
-    }
-    return Py_BuildValue("(ddd)", i, v, u);
-}
-
-static PyMethodDef module_methods[] = {
-    {"plant_steps", (PyCFunction)(void (*)(void))plant_steps, METH_FASTCALL, "RLCPlant.advance's RK4 loop"},
-    {NULL, NULL, 0, NULL},
-};
-
-static struct PyModuleDef kernel_module = {.m_base = PyModuleDef_HEAD_INIT, .m_name = "service._kernel",
-                                           .m_doc = "Compiled twin of the control core's step and the plant's "
-                                                    "integrator.", .m_size = -1, .m_methods = module_methods};
-
-PyMODINIT_FUNC PyInit__kernel(void)
-{
-    if (PyType_Ready(&KernelType) < 0 || PyType_Ready(&TickWriterType) < 0)
-        return NULL;
-    PyObject *m = PyModule_Create(&kernel_module);
-    if (m == NULL)
-        return NULL;
-    Py_INCREF(&KernelType);
-    if (PyModule_AddObject(m, "Kernel", (PyObject *)&KernelType) < 0) {
-        Py_DECREF(&KernelType);
-        Py_DECREF(m);
-        return NULL;
-    }
-    Py_INCREF(&TickWriterType);
-    if (PyModule_AddObject(m, "TickWriter", (PyObject *)&TickWriterType) < 0) {
-        Py_DECREF(&TickWriterType);
-        Py_DECREF(m);
-        return NULL;
-    }
-    if (PyModule_AddIntConstant(m, "OUT_LEN", O_N) < 0) {
-        Py_DECREF(m);
-        return NULL;
-    }
-    return m;
-}

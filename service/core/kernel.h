@@ -1,0 +1,71 @@
+/* Shared declarations of the compiled twin (the extension service._kernel), one source per layer:
+ *   service/core/kernel.c        the control core's step (ControlCore.step and its estimator): the Kernel type
+ *   service/plant/rk4.c          the plant's RK4 integrator (RLCPlant.advance)
+ *   service/daemon/tickwriter.c  the daemon's stepped tick after its checks (TickWriter)
+ *   service/kernel_module.c      the module that registers them
+ * Built with -ffp-contract=off so that every result is bit-identical to the Python reference.
+ */
+#ifndef ENERGYCTL_KERNEL_H
+#define ENERGYCTL_KERNEL_H
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#define PYMIN(a, b) ((b) < (a) ? (b) : (a))
+#define PYMAX(a, b) ((b) > (a) ? (b) : (a))
+
+enum { K_FIXED = 0, K_LQR = 1, K_BM = 2, K_FBLC = 3, K_SMC = 4 };
+
+/* Output buffer layout (doubles), shared with service/fastcore.py. */
+enum {
+    O_DU = 0, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1,
+    O_SEQ, O_T, O_STEPS, O_COUNT, O_HAS_EST,
+    O_EST = 17, /* 18 RLCEnergy fields, in its __slots__ order */
+    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42, O_DU_NEXT = 43, O_LATE = 44,
+    O_N = 45
+};
+enum { E_E = 0, E_ET, E_D, E_TAU, E_P, E_PDOT, E_PU, E_QDU, E_PL, E_QDL, E_PM, E_YZ, E_YZB, E_ETA, E_PRO, E_QRO,
+       E_PROP, E_QROP };
+
+typedef struct {
+    PyObject_HEAD
+    /* model and timing */
+    double R, L, C, T, tau;
+    int d, n_pred;
+    /* gains and limits (set_params) */
+    int kind, continuous, cancel_Et, plan;
+    double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC, late_tol;
+    double obs; /* observer_gain (0: the prediction starts from the raw sample) */
+    int load_ref; /* load_power: 1 = -P_in (the neighbours' announced power), 0 = v i_2 measured */
+    /* the observer: seq of its last estimate, the estimate (i, v, u) and the load power (W) carried with it */
+    double x_seq, x_hat[3], x_P;
+    /* late-command detection: the last step's seq and measured u, and the verdict */
+    double last_seq_u, last_u;
+    int late;
+    /* estimator: EwLineFit over (i, v, i_2) and the z_out integrals */
+    int has_t;
+    double t_last, S0, S1, S2, Sy[3], Say[3], ref[3];
+    int has_last;
+    double last_t, last_P, last_Q;
+    /* the last d + 1 samples answered: pending[3 j] = s, [3 j + 1] = du/dt answering s, [3 j + 2] = du/dt planned
+       for the period after, at j = s mod (d + 1) (s NaN: none); previous command */
+    double *pending;
+    double r_prev;
+    double o[O_N];
+} Kernel;
+
+/* ControlCore.step; returns 1 if the estimator took the sample (core/kernel.c). */
+int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double su, double si2, double P_in,
+                double P_in_dot);
+/* The outgoing rates at the port after a step (core/kernel.c). */
+PyObject *port_rates(const double *o, double *qdot);
+/* n float arguments of a METH_FASTCALL function into x; 0 with an exception set if they are not that. */
+int float_args(PyObject *const *args, Py_ssize_t nargs, int n, double *x, const char *usage);
+/* plant_steps(R, L, C, v_min, u_min, u_max, clip, r, h, n_sub, Pa, dP, ma, dm, i, v, u) (plant/rk4.c). */
+PyObject *plant_steps(PyObject *mod, PyObject *const *args, Py_ssize_t nargs);
+
+extern PyTypeObject KernelType;     /* core/kernel.c */
+extern PyTypeObject TickWriterType; /* daemon/tickwriter.c */
+
+#endif
