@@ -201,7 +201,7 @@ def test_fast_log_reader_gives_the_general_readers_arrays(tmp_path):
     import numpy as np
     import pytest
 
-    from service import replay as rp
+    from service.logio import reader as rp
 
     if rp._mcapscan is None:
         pytest.skip("log scanner not built")

@@ -26,6 +26,7 @@ from multiprocessing import shared_memory
 from pathlib import Path
 
 from schemas.codec import VERSION, Codec
+from service.logio.tickindex import TickIndex
 
 SLOT = 128
 _HDR = struct.Struct("<QQQ")  # (unused), messages taken by the writer (statistics only), flags (bytes 16, 17)
@@ -211,71 +212,177 @@ class RingRecorder:
         self._shm.unlink()
 
 
-class TickIndex:
-    """Replay index written beside the JSON channels: per tick, the measurement, what else the core was given and
-    its answer, as one row of doubles (``COLUMNS``), flushed every ``every`` ticks as a zstd-compressed MCAP
-    attachment. Foxglove reads the JSON channels; replay reads these rows and skips decompressing and parsing
-    the JSON (it uses them only when their count equals the file's meas and z_in counts: same ticks, same
-    doubles, since both are written from the same ring slots)."""
+class RingWriter:
+    """The writer process's side of the ring: decodes each slot and writes the MCAP (JSON text per message, the
+    tick index, events and metadata from the side queue), rotating to a new part by size or time.
 
-    NAME = "energyctl.ticks"
-    MEDIA_TYPE = "application/x-energyctl-ticks+zstd"
-    COLUMNS = ("seq", "t", "i", "v", "u", "i_load", "P_r_in", "P_r_in_dot", "stepped", "du_dt", "du_dt_next")
+    spec: (topic, schema name, "module:Model" or None for the event topic, magic) per topic id; groups: the
+    member topic ids of each group slot (GROUP_BASE + g)."""
 
-    def __init__(self, k_meas: int, k_zin: int, k_cmd: int, every: int = 8192):
-        self.kinds = (k_meas, k_zin, k_cmd)
-        self.every = every
-        self.rows = array("d")
-        self._m: tuple | None = None
-        self._z: tuple | None = None
+    def __init__(self, path: str, spec, metadata: dict, chunk_size: int, events, rotate_bytes=None, rotate_s=None,
+                 groups: list[tuple[int, ...]] = ()):
+        import importlib
 
-    @classmethod
-    def for_topics(cls, topics: list[str], magics: list[int]) -> TickIndex | None:
-        """The index for a daemon's stream set (meas, z_in and cmd with the wire codecs), else None."""
-        from schemas.codec import CMD, MEAS, TICK_IN
+        from schemas.messages import Event
 
-        want = {("meas", MEAS.magic), ("z_in", TICK_IN.magic), ("cmd", CMD.magic)}
-        found = {(t.rsplit("/", 1)[-1], m): k for k, (t, m) in enumerate(zip(topics, magics, strict=True))}
-        if not want <= set(found):
-            return None
-        return cls(found["meas", MEAS.magic], found["z_in", TICK_IN.magic], found["cmd", CMD.magic])
+        self.path, self.spec, self.meta, self.chunk_size = path, spec, metadata, chunk_size
+        self.events, self.rotate_bytes, self.rotate_s = events, rotate_bytes, rotate_s
+        self.topics, self.codecs, self.fields, self.templates, self.bools = [], [], [], [], []
+        self.ev_topic = None
+        for topic, _schema, model_ref, magic in spec:
+            self.topics.append(topic)
+            if model_ref is None:
+                self.codecs.append(None)
+                self.fields.append(None)
+                self.templates.append(None)
+                self.bools.append(())
+                self.ev_topic = topic
+                continue
+            mod, name = model_ref.split(":")
+            codec = Codec(getattr(importlib.import_module(mod), name), magic)
+            self.codecs.append(codec)
+            self.fields.append(codec.fields)
+            self.templates.append(codec.json_template())
+            self.bools.append(codec.bool_positions)
+        self.ev_fields = tuple(Event.model_fields)
+        # per group: its payload struct (members' fields, no magic or version) and (topic id, first, end) per member
+        self.group_structs, self.group_parts = [], []
+        for members in groups:
+            self.group_structs.append(struct.Struct("<" + _group_fields([self.codecs[m] for m in members])))
+            parts, a = [], 0
+            for m in members:
+                n = len(self.codecs[m].fields)
+                parts.append((m, a, a + n))
+                a += n
+            self.group_parts.append(parts)
+        self.paths = [path]
+        self.index = TickIndex.for_topics(self.topics, [m for *_, m in spec])
+        self.index_kinds = self.index.kinds if self.index is not None else ()
+        self.part_bytes, self.part_t0 = 0, None
+        self.f = None
+        self.written = 0  # messages written (poll keeps it)
 
-    def metadata(self) -> dict[str, str]:
-        return {"attachment": self.NAME, "media_type": self.MEDIA_TYPE, "columns": ",".join(self.COLUMNS),
-                "dtype": "<f8"}
+    def open_part(self, p: str, part: int):
+        from service.logio.mcapfile import McapFile
 
-    def take(self, k: int, vals: tuple) -> bool:
-        """One message of the three streams; True when a flush is due."""
-        km, kz, _ = self.kinds
-        if k == km:
-            self._m = vals
-        elif k == kz:
-            self._z = vals
+        mf = McapFile(p, chunk_size=self.chunk_size)
+        for md_name, data in self.meta.items():
+            mf.metadata(md_name, data)
+        mf.metadata("part", {"index": str(part), "first": str(self.path)})
+        if self.index is not None:
+            mf.metadata("tick_index", self.index.metadata())
+        for topic, schema, _ref, _magic in self.spec:
+            mf.channel(topic, schema)
+        return mf
+
+    def open(self) -> None:
+        """The first part (raises what the file system says: unwritable directory, disk full)."""
+        self.f = self.open_part(self.path, 0)
+
+    def maybe_rotate(self, t: float) -> None:
+        if self.part_t0 is None:
+            self.part_t0 = t
+        if (self.rotate_bytes and self.part_bytes >= self.rotate_bytes) or (
+                self.rotate_s and t - self.part_t0 >= self.rotate_s):
+            if self.index is not None:
+                self.index.flush(self.f)
+            self.f.close()
+            stem = self.path[:-5] if self.path.endswith(".mcap") else self.path
+            nxt = f"{stem}-{len(self.paths)}.mcap"
+            self.paths.append(nxt)
+            self.f = self.open_part(nxt, len(self.paths) - 1)
+            self.part_bytes, self.part_t0 = 0, t
+
+    def side(self, t, vals) -> int:
+        """One item of the side queue: an event message, or (t None) a metadata record."""
+        if t is None:
+            self.f.metadata(*vals)
+            return 0
+        if self.ev_topic:
+            self.f.add(self.ev_topic, t, dict(zip(self.ev_fields, vals, strict=True)))
+            return 1
+        return 0
+
+    def drain(self, timeout_s: float | None = None) -> int:
+        """Every item the side queue holds now (timeout_s: and any that arrives within it of the last)."""
+        from queue import Empty
+
+        n, events = 0, self.events
+        try:
+            while True:
+                n += self.side(*(events.get_nowait() if timeout_s is None else events.get(timeout=timeout_s)))
+        except Empty:
+            pass
+        return n
+
+    def record(self, k: int, t: float, vals: tuple) -> None:
+        """One message of topic k: into the tick index, and as JSON text into the file."""
+        if k in self.index_kinds and self.index.take(k, vals):
+            self.index.flush(self.f)
+        raw = vals
+        bools = self.bools[k]
+        if bools:
+            vals = tuple(("true" if v else "false") if j in bools else v for j, v in enumerate(vals))
+        text = self.templates[k] % vals
+        if self.rotate_bytes or self.rotate_s:
+            self.maybe_rotate(t)
+            self.part_bytes += len(text)
+        if "nan" in text or "inf" in text:  # non-finite floats are not JSON text (no field name has these)
+            self.f.add(self.topics[k], t, dict(zip(self.fields[k], raw, strict=True)))
         else:
-            m, z = self._m, self._z
-            if m is not None and z is not None and m[0] == z[0] == vals[0]:
-                self.rows.extend((m[0], m[1], m[2], m[3], m[4], m[5], z[2], z[3], z[4], vals[2], vals[3]))
-            self._m = self._z = None
-            return len(self.rows) >= self.every * len(self.COLUMNS)
-        return False
+            self.f.add_raw(self.topics[k], t, text.encode())
 
-    def flush(self, f) -> None:
-        if not self.rows:
-            return
-        import zstandard
+    def poll(self, buf, slots: int, parent: int) -> int:
+        """Take the ring's slots in order until stopped (or the recorded process is gone); returns the messages
+        written. Raises what writing raised."""
+        codecs, group_structs, group_parts, record = self.codecs, self.group_structs, self.group_parts, self.record
+        written, r = 0, 0
+        try:
+            while True:
+                off = _HDR.size + (r % slots) * SLOT
+                if buf[off]:  # a full slot
+                    k, t = _SLOT_HDR.unpack_from(buf, off + 1)
+                    if k >= GROUP_BASE:
+                        g = k - GROUP_BASE
+                        vals = group_structs[g].unpack_from(buf, off + _PAYLOAD)
+                        buf[off] = 0  # free it
+                        for m, a, b in group_parts[g]:
+                            record(m, t, vals[a:b])
+                            written += 1
+                    else:
+                        vals = codecs[k].struct.unpack_from(buf, off + _PAYLOAD)[2:]
+                        buf[off] = 0
+                        record(k, t, vals)
+                        written += 1
+                    r += 1
+                    if r & 0xFF == 0:
+                        _IDX.pack_into(buf, 8, written)
+                        if r & 0xFFF == 0:  # a ring that never empties must not starve the event queue
+                            written += self.drain()
+                    continue
+                written += self.drain()
+                _IDX.pack_into(buf, 8, written)
+                if buf[_STOP] or os.getppid() != parent:  # stopped, or the recorded process died: finish
+                    if not buf[_HDR.size + (r % slots) * SLOT]:
+                        if buf[_STOP]:  # items put just before the stop may still be in the queue's pipe
+                            written += self.drain(0.1)
+                        return written
+                    continue
+                time.sleep(IDLE_SLEEP_S)
+        finally:
+            self.written = written
 
-        f.attachment(self.NAME, self.MEDIA_TYPE, zstandard.ZstdCompressor(level=1).compress(self.rows.tobytes()),
-                     self.rows[1])
-        self.rows = array("d")
+    def close(self) -> None:
+        if self.index is not None:
+            self.index.flush(self.f)
+        self.f.close()
 
 
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
             rotate_s=None, parent: int | None = None, ready=None, cpus: list[int] | None = None,
             groups: list[tuple[int, ...]] = ()) -> None:
-    import importlib
-    from queue import Empty
-
-    from service.logio.mcapfile import McapFile
+    """The writer process's entry: below the recorded process in priority, off its CPU, its own output closed;
+    a RingWriter drains the ring; ``result`` gets {"written", "error", "paths"} at the end."""
     from service.priority import RECORDER_NICE, background
 
     background(RECORDER_NICE)  # below the process it records: that one has a loop to keep
@@ -294,55 +401,9 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
 
     shm = shared_memory.SharedMemory(name=shm_name)
     buf = shm.buf
-    written, error = 0, None
-    topics, codecs, fields, templates, bools = [], [], [], [], []
-    ev_topic = None
-    for topic, _schema, model_ref, magic in spec:
-        topics.append(topic)
-        if model_ref is None:
-            codecs.append(None)
-            fields.append(None)
-            templates.append(None)
-            bools.append(())
-            ev_topic = topic
-            continue
-        mod, name = model_ref.split(":")
-        codec = Codec(getattr(importlib.import_module(mod), name), magic)
-        codecs.append(codec)
-        fields.append(codec.fields)
-        templates.append(codec.json_template())
-        bools.append(codec.bool_positions)
-    from schemas.messages import Event
-
-    ev_fields = tuple(Event.model_fields)
-    # per group: its payload struct (members' fields, no magic or version) and (topic id, first, end) per member
-    group_structs, group_parts = [], []
-    for members in groups:
-        group_structs.append(struct.Struct("<" + _group_fields([codecs[m] for m in members])))
-        parts, a = [], 0
-        for m in members:
-            n = len(codecs[m].fields)
-            parts.append((m, a, a + n))
-            a += n
-        group_parts.append(parts)
-    paths = [path]
-    index = TickIndex.for_topics(topics, [m for *_, m in spec])
-    index_kinds = index.kinds if index is not None else ()
-
-    def open_part(p: str, part: int) -> McapFile:
-        mf = McapFile(p, chunk_size=chunk_size)
-        for md_name, data in metadata.items():
-            mf.metadata(md_name, data)
-        mf.metadata("part", {"index": str(part), "first": str(path)})
-        if index is not None:
-            mf.metadata("tick_index", index.metadata())
-        for topic, schema, _ref, _magic in spec:
-            mf.channel(topic, schema)
-        return mf
-
-    part_bytes, part_t0 = 0, None
+    w = RingWriter(path, spec, metadata, chunk_size, events, rotate_bytes, rotate_s, groups)
     try:
-        f = open_part(path, 0)
+        w.open()
     except Exception as e:  # noqa: BLE001 - unwritable directory, disk full: tell the parent, end
         buf[_FAILED] = 1
         result.put({"written": 0, "error": f"cannot write {path}: {type(e).__name__}: {e}", "paths": []})
@@ -351,104 +412,23 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
         return
     if ready is not None:
         ready.set()
-
-    def maybe_rotate(t: float) -> None:
-        nonlocal f, part_bytes, part_t0
-        if part_t0 is None:
-            part_t0 = t
-        if (rotate_bytes and part_bytes >= rotate_bytes) or (rotate_s and t - part_t0 >= rotate_s):
-            if index is not None:
-                index.flush(f)
-            f.close()
-            stem = path[:-5] if path.endswith(".mcap") else path
-            nxt = f"{stem}-{len(paths)}.mcap"
-            paths.append(nxt)
-            f = open_part(nxt, len(paths) - 1)
-            part_bytes, part_t0 = 0, t
-
-    def side(t, vals) -> int:
-        """One item of the side queue: an event message, or (t None) a metadata record."""
-        if t is None:
-            f.metadata(*vals)
-            return 0
-        if ev_topic:
-            f.add(ev_topic, t, dict(zip(ev_fields, vals, strict=True)))
-            return 1
-        return 0
-
-    def drain(timeout_s: float | None = None) -> int:
-        """Every item the side queue holds now (timeout_s: and any that arrives within it of the last)."""
-        n = 0
-        try:
-            while True:
-                n += side(*(events.get_nowait() if timeout_s is None else events.get(timeout=timeout_s)))
-        except Empty:
-            pass
-        return n
-
-    def record(k: int, t: float, vals: tuple) -> None:
-        """One message of topic k: into the tick index, and as JSON text into the file."""
-        nonlocal part_bytes
-        if k in index_kinds and index.take(k, vals):
-            index.flush(f)
-        raw = vals
-        if bools[k]:
-            vals = tuple(("true" if v else "false") if j in bools[k] else v for j, v in enumerate(vals))
-        text = templates[k] % vals
-        if rotate_bytes or rotate_s:
-            maybe_rotate(t)
-            part_bytes += len(text)
-        if "nan" in text or "inf" in text:  # non-finite floats are not JSON text (no field name has these)
-            f.add(topics[k], t, dict(zip(fields[k], raw, strict=True)))
-        else:
-            f.add_raw(topics[k], t, text.encode())
-
     # the recorded process, named by itself: reading getppid() here would be too late if it died while this
     # process was still importing (then the orphan never noticed, and idled forever)
     parent = parent or os.getppid()
-    r = 0
+    error = None
     try:
-        while True:
-            off = _HDR.size + (r % slots) * SLOT
-            if buf[off]:  # a full slot
-                k, t = _SLOT_HDR.unpack_from(buf, off + 1)
-                if k >= GROUP_BASE:
-                    g = k - GROUP_BASE
-                    vals = group_structs[g].unpack_from(buf, off + _PAYLOAD)
-                    buf[off] = 0  # free it
-                    for m, a, b in group_parts[g]:
-                        record(m, t, vals[a:b])
-                        written += 1
-                else:
-                    vals = codecs[k].struct.unpack_from(buf, off + _PAYLOAD)[2:]
-                    buf[off] = 0
-                    record(k, t, vals)
-                    written += 1
-                r += 1
-                if r & 0xFF == 0:
-                    _IDX.pack_into(buf, 8, written)
-                    if r & 0xFFF == 0:  # a ring that never empties must not starve the event queue
-                        written += drain()
-                continue
-            written += drain()
-            _IDX.pack_into(buf, 8, written)
-            if buf[_STOP] or os.getppid() != parent:  # stopped, or the recorded process died: finish
-                if not buf[_HDR.size + (r % slots) * SLOT]:
-                    if buf[_STOP]:  # items put just before the stop may still be in the queue's pipe
-                        written += drain(0.1)
-                    break
-                continue
-            time.sleep(IDLE_SLEEP_S)
+        w.poll(buf, slots, parent)
     except Exception as e:  # noqa: BLE001 - report, keep what was written
         error = f"{type(e).__name__}: {e}"
         buf[_FAILED] = 1
     finally:
         try:
-            if index is not None and error is None:
-                index.flush(f)
-            f.close()
+            if error is None:
+                w.close()
+            else:
+                w.f.close()
         except Exception as e:  # noqa: BLE001
             error = error or f"{type(e).__name__}: {e}"
         buf = None
         shm.close()
-        result.put({"written": written, "error": error, "paths": paths})
+        result.put({"written": w.written, "error": error, "paths": w.paths})
