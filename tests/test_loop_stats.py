@@ -1,4 +1,4 @@
-"""The loop's time statistics (service.daemon.daemon.LoopStats): what status reports, and what a status query costs."""
+"""The loop's time statistics (service.daemon.loop_stats.LoopStats): what status reports, and what a status query costs."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import random
 
 import pytest
 
-from service.daemon.daemon import STATS_EVERY_NS, LoopStats
+from service.daemon.loop_stats import STATS_EVERY_NS, LoopStats
 
 
 def _filled(n: int, execs_us: list[int], publish_us: int = 1) -> LoopStats:
@@ -49,11 +49,11 @@ def test_a_status_query_reuses_the_distributions_for_a_while_and_counters_are_al
 def test_cpu_pct_is_the_processes_cpu_time_over_the_wall_time_between_ticks(monkeypatch):
     """Read every 1024 ticks, from the first: a process that used 1 ms of CPU per 2 ms of ticking reports 50 % of one
     CPU; a pause with no ticks counts from the next mark on; nothing before the second mark."""
-    from service.daemon import daemon
+    from service.daemon import loop_stats
 
     clock = {"cpu": 10.0, "wall": 100.0}
-    monkeypatch.setattr(daemon.time, "process_time", lambda: clock["cpu"])
-    monkeypatch.setattr(daemon.time, "monotonic", lambda: clock["wall"])
+    monkeypatch.setattr(loop_stats.time, "process_time", lambda: clock["cpu"])
+    monkeypatch.setattr(loop_stats.time, "monotonic", lambda: clock["wall"])
     s = LoopStats(64)
     s.record(0, 1000)
     assert s.cpu_pct() is None and s.summary(0, fresh=True)["cpu_pct"] is None

@@ -21,169 +21,35 @@ import threading
 import time
 from array import array
 
-import numpy as np
 import zenoh
-from pydantic import ValidationError
 
 from schemas.codec import CMD, MEAS, VERSION, DecodeError, Z
 from schemas.component import ComponentConfig
-from schemas.scenario import ControllerConfig, ScenarioError, apply_overrides, format_validation_error
-from service import __version__
+from schemas.scenario import ControllerConfig
 from service.core import core_metadata, effective_gain, make_core
-from service.core.delay import loop_delay_report
 from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from service.daemon.bus import key, latest, open_session, publisher, queued
 from service.daemon.forecast_worker import ForecastWorker
+from service.daemon.loop_stats import HIST, LoopStats
+from service.daemon.neighbours import Neighbour
+from service.daemon.queries import DaemonQueries
 from service.priority import fill_tuple_free_lists
 
 _CMD_PACK, _CMD_MAGIC, _VERSION = CMD.struct.pack, CMD.magic, VERSION  # CMD.encode without its call, on the tick
 _now_ns = time.monotonic_ns
 STATES = ("configured", "active", "inactive", "shutdown")
-HIST = 2048  # ticks of command history for the measured loop delay (a power of two)
-LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
-STATS_EVERY_NS = 250_000_000  # and the loop's time distributions at most this often
-CPU_EVERY_MASK = 1023  # the loop reads the process's CPU time every 1024 ticks (LoopStats.cpu_pct)
 # the sample trigger's queue of arrived measurements keeps the newest this many (the loop answers the newest
 # loop.catch_up <= 256): a stalled loop thread no longer piles up every sample that arrives meanwhile (memory)
 MEAS_QUEUE_MAX = 1024
 REJECT_EVENT_EVERY_NS = 10_000_000  # at most one recorded reject event per reason this often (all are counted)
 
 
-class LoopStats:
-    """Period and execution time of the last N ticks (ns) in preallocated rings, plus counters."""
-
-    def __init__(self, n: int):
-        self.n = n
-        self.period = array("q", bytes(8 * n))
-        self.exec = array("q", bytes(8 * n))
-        self.publish = array("q", bytes(8 * n))  # of exec: the command's put (Zenoh's own work on this thread)
-        # of exec: the control computation, from the accepted sample to the command ready to put (reference, core
-        # step, command payload, recorder slot): ros2_control's update() between read() and write(); 0 = none
-        self.control = array("q", bytes(8 * n))
-        self.k = 0
-        self.ticks = 0
-        self.overruns = 0  # whole periods skipped because a tick ran late
-        self.no_new_sample = 0  # clock ticks that found no new measurement
-        self.missing_samples = 0  # gaps in the measurement sequence
-        self.lockstep_timeouts = 0
-        self.window_exec_max = self.window_period_max = 0  # since the last loop record
-        self._dist: tuple[int, dict] | None = None  # (when, distributions): see summary
-        self._scratch: np.ndarray | None = None  # the distributions' working ring (_distributions)
-        # the process's CPU time (all threads: the loop, Zenoh's, queries) and the wall time (s), at the first tick
-        # and every CPU_EVERY_MASK + 1 ticks since: cpu_pct in summary() is its share of one CPU while ticks came
-        self._cpu0 = self._cpu1 = (0.0, 0.0)
-
-    def record(self, period_ns: int, exec_ns: int, publish_ns: int = 0, control_ns: int = 0) -> None:
-        k = self.k
-        self.period[k] = period_ns
-        self.exec[k] = exec_ns
-        self.publish[k] = publish_ns
-        self.control[k] = control_ns
-        self.k = k + 1 if k + 1 < self.n else 0
-        self.ticks += 1
-        if self.ticks & CPU_EVERY_MASK == 1:  # two clock reads every CPU_EVERY_MASK + 1 ticks
-            mark = (time.process_time(), time.monotonic())
-            if self.ticks == 1:
-                self._cpu0 = mark
-            self._cpu1 = mark
-        if exec_ns > self.window_exec_max:
-            self.window_exec_max = exec_ns
-        if period_ns > self.window_period_max:
-            self.window_period_max = period_ns
-
-    def summary(self, now_ns: int, fresh: bool = False) -> dict:
-        """Counters as they are now; the distributions (mean, p50, p99, max of the last n ticks, ns -> us) computed
-        on the caller's thread with numpy on the raw buffers (no per-sample Python objects: sorting 100 000 Python
-        ints per query fragmented the heap and grew RSS ~3 MB/min at 100 Hz), and reused while younger than
-        STATS_EVERY_NS unless ``fresh``. Over 100 000 ticks they take ~5 ms here, mostly holding the GIL the loop
-        needs; at 100 status queries a second, recomputed each time, that was 18 ms a query and more than a core.
-        Percentiles are nearest-rank (the value at index floor(q * (m - 1)) of the sorted window)."""
-        m = min(self.ticks, self.n)
-        out = {"ticks": self.ticks, "overruns": self.overruns, "no_new_sample": self.no_new_sample,
-               "missing_samples": self.missing_samples, "lockstep_timeouts": self.lockstep_timeouts,
-               "overrun_pct": 100.0 * self.overruns / max(1, self.ticks + self.overruns),
-               "cpu_pct": self.cpu_pct()}
-        cached = self._dist
-        if fresh or cached is None or now_ns - cached[0] >= STATS_EVERY_NS:
-            cached = self._dist = (now_ns, self._distributions(m))
-        out.update(cached[1])
-        return out
-
-    def cpu_pct(self) -> float | None:
-        """The process's CPU time as a % of one CPU between the first tick's mark and the latest (one every
-        CPU_EVERY_MASK + 1 ticks; None before two marks): 100 is a whole CPU, and on this 2-CPU machine 200 is all
-        of it."""
-        wall = self._cpu1[1] - self._cpu0[1]
-        return round(100.0 * (self._cpu1[0] - self._cpu0[0]) / wall, 1) if wall > 0 else None
-
-    def _distributions(self, m: int) -> dict:
-        """mean, p50, p99 and max (us) of each ring over its m filled ticks, computed in one scratch ring made once:
-        numpy's partition and masks made 800 KB temporaries for each distribution at 100 000 ticks, 3 MB per
-        recompute, which glibc served from the querying thread's arena once its mmap threshold had risen (README,
-        "The soak")."""
-        if self._scratch is None:
-            self._scratch = np.empty(self.n, dtype=np.int64)
-        ex = np.frombuffer(self.exec, dtype=np.int64)[:m]
-        pub = np.frombuffer(self.publish, dtype=np.int64)[:m]
-        per = np.frombuffer(self.period, dtype=np.int64)[:m]
-        ctl = np.frombuffer(self.control, dtype=np.int64)[:m]
-        out = {}
-        # exec_us: the whole tick; publish_us: its command put; compute_us: the rest (read, checks, core, record);
-        # control_us: of compute, the control computation alone (ticks that computed a command)
-        for name, src, positive in (("period_us", per, True), ("exec_us", ex, False), ("publish_us", pub, False),
-                                    ("compute_us", None, False), ("control_us", ctl, True)):
-            vals = self._scratch[:m]
-            if src is None:
-                np.subtract(ex, pub, out=vals)
-            else:
-                vals[:] = src
-            # positive: only the entries > 0 count (0: the first tick's period, a tick with no command). The values
-            # are never negative, so the z zeros sort first, and the positives' ranks are z on (no mask, no copy)
-            n = int(np.count_nonzero(vals)) if positive else m
-            if n:
-                z = m - n
-                k = [z + int(0.5 * (n - 1)), z + int(0.99 * (n - 1))]
-                mean, top = float(vals.sum()) / n, float(vals.max())
-                vals.partition(k)  # in place, in the scratch ring
-                out[name] = {"mean": mean / 1e3, "p50": float(vals[k[0]]) / 1e3, "p99": float(vals[k[1]]) / 1e3,
-                             "max": top / 1e3}
-        return out
-
-
 SAMPLE_STALE_MIN_NS = 50_000_000  # sample trigger: a lockstep plant may pause this long without being stale
 
 
-class Neighbour:
-    __slots__ = ("id", "sub", "seq", "t", "P", "P_dot", "Qdot", "rx_ns", "ranges", "count", "topic",
-                 "alive", "alive_seen", "lagging")
+class Daemon(DaemonQueries):
+    """One component's controller: the core behind the fixed-rate loop (see the module docstring)."""
 
-    def __init__(self, nid: str, sub):
-        self.id, self.sub = nid, sub
-        self.seq = -1
-        self.t = self.P = self.P_dot = self.Qdot = 0.0
-        self.rx_ns = 0
-        # its announced forecast boxes (P_min, P_max, P_dot_min, P_dot_max) by window parity: (window, box); a
-        # message carries the current window's or the next one's (feasibility.announced_window)
-        self.ranges: list[tuple[int, tuple]] = [(-1, ()), (-1, ())]
-        self.count = 0
-        self.topic = ""
-        # its liveliness token: None until seen either way, then True/False (the loop polls the token
-        # channel in _poll_neighbours); alive_seen is what the loop last logged
-        self.alive: bool | None = None
-        self.alive_seen: bool | None = None
-        self.lagging = False  # lockstep: timed out once; not waited for again until it catches up
-
-    def box(self, window: int) -> tuple | None:
-        """Its forecast box for this window, if it announced one."""
-        w, b = self.ranges[window & 1]
-        return b if w == window else None
-
-    def fresh(self, now_ns: int, stale_ns: int) -> bool:
-        """Heard from within stale_ns, and its liveliness token not gone."""
-        return self.count > 0 and now_ns - self.rx_ns <= stale_ns and self.alive is not False
-
-
-class Daemon:
     def __init__(self, cfg: ComponentConfig):
         self.cfg = cfg
         self.period_s = 1.0 / cfg.loop.rate_hz
@@ -728,135 +594,3 @@ class Daemon:
             self.recorder.offer(self.t_zout, t, vals)
 
     # ---------------------------------------------------------------- queries (query thread)
-    def _serve(self, q, own_key: str, handler) -> None:
-        """Answer one queryable's queries on its own key (a `get` on ``energyctl/**`` learns which leaf answered)."""
-        while True:
-            try:
-                query = q.recv()
-            except Exception:  # noqa: BLE001 - channel closed at shutdown
-                return
-            try:
-                ok, body = handler(query)
-                if ok:
-                    query.reply(own_key, json.dumps(body))
-                else:
-                    query.reply_err(json.dumps(body))
-            except Exception as e:  # noqa: BLE001 - a bad query must not kill the thread
-                try:
-                    query.reply_err(json.dumps({"error": f"{type(e).__name__}: {e}"}))
-                except Exception:  # noqa: BLE001
-                    pass
-            finally:
-                query.drop()
-
-    def status(self) -> dict:
-        now = time.monotonic_ns()
-        est = self.core.out.est
-        c = self.cfg
-        ls = self.last_sample
-        return {
-            "id": c.id, "version": __version__, "state": self.state, "config_version": self.config_version,
-            "loop": {"rate_hz": c.loop.rate_hz, "trigger": c.loop.trigger,
-                     **self.stats.summary(now, fresh=self.state == "shutdown"),
-                     # samples the full queue dropped (oldest first) while the loop thread was held up
-                     "meas_queue_dropped": getattr(getattr(self, "meas_q", None), "dropped", 0)},
-            "last_sample": dict(zip(MEAS.fields, ls, strict=True)) if ls else None,
-            "last_command": dict(zip(CMD.fields, self.last_cmd, strict=True)) if self.last_cmd else None,
-            "estimate": {k: getattr(est, k) for k in ("E", "E_t", "p", "y_z", "y_z_balance", "eta", "P_r_out_port",
-                                                      "Qdot_r_out_port")} if est else None,
-            "z_out": list(self.core.estimator.z_out),
-            "y_ref": self.core.out.y_ref, "u_z": self.core.out.u_z,
-            "neighbours": {nb.id: {"messages": nb.count, "age_s": max(0, now - nb.rx_ns) / 1e9 if nb.count else None,
-                                   "fresh": nb.fresh(now, int(c.neighbour_stale_s * 1e9)), "alive": nb.alive,
-                                   "lagging": nb.lagging,
-                                   "P_r_out": nb.P} for nb in self.neighbours},
-            "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
-                            "recent": [v.__dict__ for v in self.feas.violations],
-                            "forecast": self.forecaster.status() if self.forecaster is not None else None},
-            "rejected": dict(self.rejected), "last_reject": self.last_reject,
-            "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
-            "plant_restarts": self.restarts,
-            "late_command_ticks": self.late_ticks,
-            "loop_delay": self._loop_delay(),
-            "logging": self._logging_status(),
-        }
-
-    def _loop_delay(self) -> dict:
-        """The loop delay measured over this plant epoch's newest ticks (service/delay.py), against the delay the
-        core compensates; read while the loop writes, so a sample at the edge may be torn (a diagnostic, not a
-        control input). The estimate takes ~0.4 ms of numpy, mostly holding the GIL the loop needs, so a status
-        query reuses one younger than LOOP_DELAY_EVERY_NS (the final status after shutdown is always fresh)."""
-        now = time.monotonic_ns()
-        cached = self._loop_delay_cache
-        if cached is not None and now - cached[0] < LOOP_DELAY_EVERY_NS and self.state != "shutdown":
-            return cached[1]
-        out = self._estimate_loop_delay()
-        self._loop_delay_cache = (now, out)
-        return out
-
-    def _estimate_loop_delay(self) -> dict:
-        last = self._last_seq
-        if last < 0:
-            return {"measured_samples": None, "compensated_samples": self.core.d, "mismatch": False, "window": 0}
-        seqs = np.arange(max(0, last - HIST + 1), last + 1)  # this plant epoch's newest ticks, oldest first
-        idx = seqs & (HIST - 1)
-        hist_seq = np.frombuffer(self._hist_seq, dtype=np.int64)
-        idx = idx[hist_seq[idx] == seqs]  # slots still holding this epoch's tick of that seq
-        return loop_delay_report(hist_seq[idx], np.frombuffer(self._hist_u)[idx], np.frombuffer(self._hist_r)[idx],
-                                 self.period_s, self.core.d)
-
-    def _logging_status(self) -> dict | None:
-        rec = self.recorder
-        if rec is None:  # no log asked for, or a recorder that could not even start
-            return {"path": self.log_path, "written": 0, "drops": {}, "state": "degraded",
-                    "error": self.log_error} if self.log_error else None
-        return {"path": self.log_path, "written": rec.written, "drops": dict(rec.drops),
-                "state": "degraded" if rec.failed else "ok", "error": rec.error}
-
-    def _status_reply(self, query) -> tuple[bool, dict]:
-        return True, self.status()
-
-    def _config_reply(self, query) -> tuple[bool, dict]:
-        if query.payload is not None or "set" in str(query.parameters).split(";")[0].split("&"):
-            where = key(self.cfg.prefix, self.cfg.id, "config/set")
-            return False, {"error": f"config is read-only here; sets go to {where}"}
-        return True, {"controller": self.core.cfg.model_dump(), "state": self.state,
-                      "config_version": self.config_version}
-
-    def _config_set_reply(self, query) -> tuple[bool, dict]:
-        try:
-            req = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
-            sets = req.get("set") if isinstance(req, dict) else None
-            if not isinstance(sets, list) or not sets or not all(isinstance(x, str) for x in sets):
-                raise ScenarioError("set: expected a non-empty list of 'key=value' strings, as {\"set\": [...]}")
-        except (ValueError, ScenarioError) as e:
-            return False, {"error": str(e)}
-        return self.apply_sets(sets)
-
-    def apply_sets(self, sets: list[str]) -> tuple[bool, dict]:
-        """Validate ``controller.X=value`` / ``lifecycle=active|inactive`` and hand them to the loop."""
-        ctl = [s for s in sets if not s.startswith("lifecycle=")]
-        life = [s.split("=", 1)[1].strip().strip('"') for s in sets if s.startswith("lifecycle=")]
-        if life and life[-1] not in ("active", "inactive"):
-            return False, {"error": f"lifecycle: {life[-1]!r} is not one of active, inactive"}
-        bad = [s for s in ctl if not s.startswith("controller.")]
-        if bad:
-            return False, {"error": f"only controller.* and lifecycle can be set at run time: {bad}"}
-        try:
-            data = apply_overrides({"controller": self.core.cfg.model_dump()}, ctl)["controller"]
-            new = ControllerConfig.model_validate(data)
-        except ScenarioError as e:
-            return False, {"error": str(e)}
-        except ValidationError as e:
-            return False, {"error": format_validation_error(e, "set", what="config")}
-        if new.kind != self.core.cfg.kind or new.mapping != self.core.cfg.mapping:
-            return False, {"error": "controller.kind and controller.mapping cannot change at run time"}
-        if life:
-            self._pending_state = life[-1]
-        if ctl:
-            ev = threading.Event()
-            self._pending = (new, ev, new.model_dump_json())
-            if not ev.wait(2.0):
-                return False, {"error": "not applied: the loop did not tick within 2 s"}
-        print(f"energyctl[{self.cfg.id}]: config set {sets} -> version {self.config_version}", file=sys.stderr)
-        return True, {"applied": sets, "config_version": self.config_version, "controller": self.core.cfg.model_dump()}
