@@ -14,10 +14,13 @@ from typing import get_args
 
 from pydantic import BaseModel
 
-from .messages import Command, Estimate, Interaction, LoopRecord, Measurement, Plant, TickInput
+from schemas.messages import Command, Estimate, Interaction, LoopRecord, Measurement, Plant, TickInput
 
 VERSION = 1
 _TYPE_CODES = {int: "Q", float: "d", bool: "B"}
+# what each struct code is called in the JSON Schemas' x-wire-type (schemas.generate); a bool field's "B" is "bool/u8"
+WIRE_TYPE_NAMES = {"Q": "u64", "d": "f64", "B": "u8"}
+_ENDIANNESS = {"<": "little", ">": "big", "!": "big"}
 
 
 class DecodeError(ValueError):
@@ -86,6 +89,22 @@ class Codec:
         fmt = self.struct.format.lstrip("<")[2:]
         return tuple(k for k, c in enumerate(fmt) if c == "B")
 
+    @property
+    def endianness(self) -> str:
+        return _ENDIANNESS[self.struct.format[0]]
+
+    def layout(self) -> list[tuple[str, str, int, int]]:
+        """(name, wire type, offset in bytes, size in bytes) of the header's ``magic`` and ``version`` bytes and of
+        each field in wire order, read off the struct format the codec packs with (what the JSON Schemas' x-wire-*
+        keys state: schemas.generate)."""
+        order, codes = self.struct.format[0], self.struct.format[1:]
+        kinds = [_py_type(f.annotation) for f in self.model.model_fields.values()]
+        out = []
+        for k, (name, c) in enumerate(zip(("magic", "version", *self.fields), codes, strict=True)):
+            wire = "bool/u8" if k >= 2 and kinds[k - 2] is bool else WIRE_TYPE_NAMES[c]
+            out.append((name, wire, struct.calcsize(order + codes[:k]), struct.calcsize(order + c)))
+        return out
+
 
 MEAS = Codec(Measurement, 0xE1)
 CMD = Codec(Command, 0xC1)
@@ -94,3 +113,6 @@ TICK_IN = Codec(TickInput, 0x71)
 EST = Codec(Estimate, 0x51)
 LOOP = Codec(LoopRecord, 0x4C)
 PLANT = Codec(Plant, 0x50)  # only recorded (the HIL plant's true state), never sent
+
+# the codec of each message model that has a binary form (energyctl.Event has none: JSON text in recordings only)
+BY_MODEL: dict[type[BaseModel], Codec] = {c.model: c for c in (MEAS, CMD, Z, TICK_IN, EST, LOOP, PLANT)}

@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, Field, ValidationError, field_validator, model_validator
 
-from .scenario import (
+from schemas.scenario import (
     CircuitParams,
     ControllerConfig,
     LoadConfig,
@@ -30,11 +30,12 @@ class ZenohConfig(Strict):
     """How to open the Zenoh session. ``config_file`` (Zenoh JSON5) is passed through unchanged, as
     Zenoh's own tools take ``-c``; the other fields are applied on top of it only when given."""
 
-    mode: Literal["peer", "client", "router"] = "peer"
-    listen: list[str] = []
-    connect: list[str] = []
-    config_file: str | None = None
-    multicast_scouting: bool = False
+    mode: Literal["peer", "client", "router"] = Field(default="peer", description="Zenoh session mode")
+    listen: list[str] = Field(default=[], description="Zenoh endpoints to listen on, e.g. tcp/0.0.0.0:7447")
+    connect: list[str] = Field(default=[], description="Zenoh endpoints to connect to, e.g. tcp/127.0.0.1:7447")
+    config_file: str | None = Field(default=None, description="Zenoh JSON5 config file, used as it is (relative "
+                                                              "paths: from the config file's directory)")
+    multicast_scouting: bool = Field(default=False, description="find peers by UDP multicast")
     user: str | None = Field(default=None, description="user/password authentication (transport/auth/usrpwd): "
                                                        "this session's user name, its identity in the router's ACL")
     password_file: str | None = Field(default=None, description="file holding the password (first line); relative "
@@ -104,7 +105,7 @@ class Named(Strict):
                                   "before anything starts; 0 leaves the inherited value. Its recorder and forecast "
                                   "processes go back to 50 000 (service.priority)")
     malloc_mmap_threshold_bytes: Annotated[int, Field(ge=0, le=1 << 30)] = Field(
-        default=131072, description="glibc: blocks of this size or more get their own mapping, returned to the "
+        default=131072, description="glibc: blocks of this size (bytes) or more get their own mapping, returned to the "
                                     "system when freed, and the threshold stays fixed (glibc raises it to each such "
                                     "block freed, up to 32 MiB, after which large temporaries stay resident in "
                                     "thread arenas); 0 leaves glibc's dynamic threshold. Set before anything starts")
@@ -130,13 +131,18 @@ class Named(Strict):
 
 
 class LoopConfig(Strict):
-    rate_hz: Annotated[float, Field(ge=1000, le=20000)] = 10000.0
+    rate_hz: Annotated[float, Field(ge=1000, le=20000)] = Field(
+        default=10000.0, description="control rate, Hz: the clock trigger's tick rate, and the period the core "
+                                     "plans with (the plant's sample rate)")
     trigger: Literal["clock", "sample"] = Field(
         default="clock", description="clock: own absolute-time schedule; sample: each new measurement ticks")
     lockstep: bool = Field(default=False, description="sample trigger also waits for each neighbour's "
                                                        "interaction variable stamped with the sample's seq")
-    lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
-    spin_margin_s: Annotated[float, Field(ge=0, le=0.01)] = 2e-4
+    lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = Field(
+        default=2.0, description="lockstep: longest wait for the neighbours' messages for a sample, s (then the "
+                                 "tick goes ahead and the late neighbour is not waited for until it catches up)")
+    spin_margin_s: Annotated[float, Field(ge=0, le=0.01)] = Field(
+        default=2e-4, description="clock trigger: sleep until this long before each tick, then spin, s")
     wait: Literal["block", "spin"] = Field(
         default="block", description="sample trigger: block on the queue (frees the core), or spin on it (lower "
                                      "wake-up latency on an idle machine, but it costs a whole core, which the "
@@ -145,7 +151,8 @@ class LoopConfig(Strict):
         default=1, description="sample trigger: when several samples queued up, answer up to this many of the "
                                "newest, oldest first (each gets its command; older ones count as missing); 1 = only "
                                "the newest")
-    stats_window: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000
+    stats_window: Annotated[int, Field(ge=100, le=10_000_000)] = Field(
+        default=100_000, description="ticks the status query's loop-time distributions cover (the newest)")
 
 
 class ComponentConfig(Named):
@@ -155,15 +162,20 @@ class ComponentConfig(Named):
     controller: ControllerConfig = ControllerConfig()
     loop: LoopConfig = LoopConfig()
     delay_samples: Annotated[int, Field(ge=0, le=200)] = Field(
-        default=2, description="loop delay the core predicts over unless controller.delay_compensation_samples")
+        default=2, description="loop delay the core predicts over unless controller.delay_compensation_samples "
+                               "(samples)")
     neighbours: list[str] = Field(default=[], description="ids whose interaction variables form P^{r,in}")
-    interaction_rate_hz: Annotated[float, Field(gt=0, le=20000)] = 1000.0
-    forecast_window_s: Annotated[float, Field(gt=0)] = 1.0
+    interaction_rate_hz: Annotated[float, Field(gt=0, le=20000)] = Field(
+        default=1000.0, description="rate of this component's interaction messages on .../z, Hz (every "
+                                    "round(loop.rate_hz / this) ticks)")
+    forecast_window_s: Annotated[float, Field(gt=0)] = Field(
+        default=1.0, description="length T_s of the windows the interaction ranges and forecasts are for, s")
     forecast: OutgoingForecastConfig = Field(
         default=OutgoingForecastConfig(enabled=True),
         description="forecast this component's Z^{r,out} for each window the neighbours announce, publish it on "
                     ".../z and check it against Z^{r,in} ahead of the window (in a worker process)")
-    neighbour_stale_s: Annotated[float, Field(gt=0)] = 0.05
+    neighbour_stale_s: Annotated[float, Field(gt=0)] = Field(
+        default=0.05, description="a neighbour not heard from for this long is not fresh (no reference from it), s")
     neighbour_extrapolate_s: Annotated[float, Field(ge=0)] = Field(
         default=0.01, description="how far a neighbour's rate carries its last P to the sample's time (s), forward "
                                   "or back (a sample answered after a stall is older than the message): P_j + dP_j/dt "
@@ -171,9 +183,12 @@ class ComponentConfig(Named):
                                   "or two a rate is a guess: a 200 Hz load silent for 32 ms was carried 560 W off and "
                                   "the realtime loop left the band")
     plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
-    meas_v_min_V: Annotated[float, Field(gt=0)] = Field(default=1.0, description="reject measurements with v below")
-    meas_v_max_V: Annotated[float, Field(gt=0)] = Field(default=1000.0, description="reject measurements with v above")
-    meas_i_max_A: Annotated[float, Field(gt=0)] = Field(default=1000.0, description="reject |i|, |i_load| above")
+    meas_v_min_V: Annotated[float, Field(gt=0)] = Field(
+        default=1.0, description="reject measurements with v below, V (answered with du/dt = 0)")
+    meas_v_max_V: Annotated[float, Field(gt=0)] = Field(
+        default=1000.0, description="reject measurements with v above, V (answered with du/dt = 0)")
+    meas_i_max_A: Annotated[float, Field(gt=0)] = Field(
+        default=1000.0, description="reject measurements with |i| or |i_load| above, A (answered with du/dt = 0)")
     stale_periods: Annotated[int, Field(ge=1, le=100000)] = Field(
         default=10, description="this many periods without a measurement -> degraded, du/dt = 0 "
                                 "(sample trigger: at least 50 ms)")
@@ -201,41 +216,56 @@ class PlantPeerConfig(Named):
     wait_for: list[str] = Field(default=[], description="other ids whose liveliness token must be up before starting")
     plant: PlantConfig = PlantConfig()
     load: LoadConfig = LoadConfig()
-    disturbance: ProfileConfig | None = None
+    disturbance: ProfileConfig | None = Field(default=None, description="matched disturbance voltage profile (V); "
+                                                                       "None: none")
     sensor: SensorConfig = SensorConfig()
-    sample_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = 10000.0
-    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = 1e-5
+    sample_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = Field(
+        default=10000.0, description="rate of the measurements on .../meas, Hz")
+    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = Field(
+        default=1e-5, description="the plant's integration step, s")
     delay_samples: Annotated[int, Field(ge=0, le=200)] = Field(
-        default=0, description="extra actuation delay the plant adds (lockstep: the whole loop delay)")
-    pacing: Literal["lockstep", "realtime"] = "realtime"
+        default=0, description="extra actuation delay the plant adds (lockstep: the whole loop delay), samples")
+    pacing: Literal["lockstep", "realtime"] = Field(
+        default="realtime", description="lockstep: after each sample the plant waits for the command answering "
+                                        "it (simulated time); realtime: samples on the wall clock's schedule")
     realtime_apply_delay_samples: Annotated[int, Field(ge=1, le=200)] = Field(
-        default=1, description="realtime: the command answering sample k acts from sampling instant k + this")
-    lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+        default=1, description="realtime: the command answering sample k acts from sampling instant k + this "
+                               "(samples)")
+    lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = Field(
+        default=2.0, description="lockstep: longest wait for a command, s")
     realtime_spin_us: Annotated[float, Field(ge=0, le=1000)] = Field(
         default=60.0, description="realtime: the plant sleeps until this long before each "
                                   "sampling instant and spins the rest (µs): a timed wait here ends 17 µs late "
                                   "p50, 87 µs p99 (energyctl bench wake), and the spin costs this much CPU per "
                                   "period")
-    duration_s: Annotated[float, Field(gt=0, le=86400)] = 2.0
-    start_delay_s: Annotated[float, Field(ge=0, le=60)] = 0.0
-    seed: int = 1
-    v_ref_V: float = 80.0
+    duration_s: Annotated[float, Field(gt=0, le=86400)] = Field(default=2.0, description="length of the run, s")
+    start_delay_s: Annotated[float, Field(ge=0, le=60)] = Field(
+        default=0.0, description="wait this long after the peers in wait_for are up before the first sample, s")
+    seed: int = Field(default=1, description="seed of the sensor noise")
+    v_ref_V: float = Field(default=80.0, description="the voltage reference the run's metrics are judged "
+                                                     "against, V")
     out: str | None = Field(default=None, description="write the run's trace and metrics here (.mcap, .json)")
-    base_dir: str = "."
+    base_dir: str = Field(default=".", description="directory for relative csv paths (set by the loader)")
 
 
 class LoadPeerConfig(Named):
     """``energyctl load --config``: the neighbour Sigma_2, a constant-power load."""
 
     load: LoadConfig = LoadConfig()
-    rate_hz: Annotated[float, Field(gt=0, le=20000)] = 1000.0
-    window_s: Annotated[float, Field(gt=0)] = 1.0
-    forecast_margin: Annotated[float, Field(ge=0)] = 0.05
-    pacing: Literal["lockstep", "realtime"] = "realtime"
+    rate_hz: Annotated[float, Field(gt=0, le=20000)] = Field(
+        default=1000.0, description="realtime: rate of the interaction messages on .../z, Hz")
+    window_s: Annotated[float, Field(gt=0)] = Field(
+        default=1.0, description="length T_s of the windows the announced load ranges are for, s")
+    forecast_margin: Annotated[float, Field(ge=0)] = Field(
+        default=0.05, description="relative widening of the announced load range (fraction of its largest "
+                                  "magnitude, each side)")
+    pacing: Literal["lockstep", "realtime"] = Field(
+        default="realtime", description="lockstep: one message per sample of plant_id, stamped with its seq and "
+                                        "time; realtime: rate_hz on the wall clock, stamped with the plant's time")
     plant_id: str | None = Field(default=None, description="lockstep: answer each sample of this id's .../meas")
-    duration_s: Annotated[float, Field(gt=0, le=86400)] = 3600.0
+    duration_s: Annotated[float, Field(gt=0, le=86400)] = Field(default=3600.0, description="length of the run, s")
     log_dir: str | None = Field(default=None, description="record published messages to <log_dir>/<id>-<time>.mcap")
-    base_dir: str = "."
+    base_dir: str = Field(default=".", description="directory for relative csv paths (set by the loader)")
 
 
 def load_config(kind: type[BaseModel], path: str | Path, overrides: list[str] | None = None):

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 from pydantic import BaseModel, ConfigDict, Field
 
 
@@ -15,7 +12,8 @@ class Msg(BaseModel):
 class Measurement(Msg):
     """One sample from the plant (topic ``.../meas``)."""
 
-    seq: int = Field(ge=0)
+    seq: int = Field(ge=0, description="sample sequence number: 0 at the plant's start (0 again: it restarted), "
+                                       "then one more per sampling period")
     t: float = Field(description="sample time, s")
     i: float = Field(description="source-branch current, A")
     v: float = Field(description="terminal voltage, V")
@@ -41,7 +39,8 @@ class Interaction(Msg):
     A neighbour forms its incoming variable as P^{r,in} = -sum_j P_j^{r,out} (paper Eqn PsiMap).
     """
 
-    seq: int = Field(ge=0)
+    seq: int = Field(ge=0, description="lockstep pacing: seq of the measurement the message answers (a lockstep "
+                                       "controller waits for it); otherwise a count of the sender's messages")
     t: float = Field(description="time the rates refer to, s")
     P_r_out: float = Field(description="outgoing instantaneous power P^{r,out}, W")
     P_r_out_dot: float = Field(description="its rate dP^{r,out}/dt, W/s")
@@ -50,16 +49,16 @@ class Interaction(Msg):
     z_out1: float = Field(description="integral of Qdot^{r,out}, W")
     window: int = Field(ge=0, description="index k of the window [k T_s, (k+1) T_s) the range is for: the current "
                                           "one during its first half, the next one during its second half")
-    P_min: float = Field(description="forecast range of P^{r,out} over the window, W")
-    P_max: float = Field(description="W")
-    P_dot_min: float = Field(description="forecast range of dP^{r,out}/dt over the window, W/s")
-    P_dot_max: float = Field(description="W/s")
+    P_min: float = Field(description="lower end of the forecast range of P^{r,out} over the window, W")
+    P_max: float = Field(description="upper end of that range, W")
+    P_dot_min: float = Field(description="lower end of the forecast range of dP^{r,out}/dt over the window, W/s")
+    P_dot_max: float = Field(description="upper end of that range, W/s")
 
 
 class Estimate(Msg):
     """Estimator internals and energy-space signals (topic ``.../est``)."""
 
-    t: float = Field(description="s")
+    t: float = Field(description="sample time of the tick, s")
     E: float = Field(description="stored energy, J")
     p: float = Field(description="dE/dt, W")
     E_t: float = Field(description="stored energy in tangent space, J/s^2")
@@ -78,7 +77,7 @@ class TickInput(Msg):
     """What the core was given besides the measurement on one tick (topic ``.../z_in``): enough to replay it."""
 
     seq: int = Field(ge=0, description="measurement seq of the tick")
-    t: float = Field(description="s")
+    t: float = Field(description="sample time of the tick, s")
     P_r_in: float = Field(description="incoming interaction P^{r,in} = -sum_j P_j^{r,out}, W")
     P_r_in_dot: float = Field(description="its rate, W/s")
     stepped: bool = Field(description="false: the core was not stepped (inactive or no fresh reference), du/dt = 0")
@@ -88,10 +87,11 @@ class LoopRecord(Msg):
     """Loop counters every N ticks (topic ``.../loop``); percentiles are in the status query."""
 
     t: float = Field(description="sample time of the tick, s")
-    ticks: int = Field(ge=0)
-    overruns: int = Field(ge=0, description="whole periods skipped (clock trigger)")
-    no_new_sample: int = Field(ge=0)
-    missing_samples: int = Field(ge=0)
+    ticks: int = Field(ge=0, description="ticks since the start")
+    overruns: int = Field(ge=0, description="whole periods skipped (clock trigger), since the start")
+    no_new_sample: int = Field(ge=0, description="clock ticks that found no new measurement, since the start")
+    missing_samples: int = Field(ge=0, description="gaps in the measurement sequence (samples never ticked on), "
+                                                   "since the start")
     exec_max_ns: int = Field(ge=0, description="longest tick since the previous record, ns")
     period_max_ns: int = Field(ge=0, description="longest tick-to-tick interval since the previous record, ns")
 
@@ -101,17 +101,19 @@ class Event(Msg):
 
     t: float = Field(description="s (sample time of the tick it belongs to, or monotonic time)")
     seq: int = Field(ge=0, description="measurement seq the event precedes (config changes apply before it)")
-    kind: str
-    detail: str = Field(description="JSON text")
+    kind: str = Field(description="what happened, e.g. config, reject, degraded, plant_restart, neighbour_alive, "
+                                  "neighbour_gone, forecast, recorder_drops")
+    detail: str = Field(description="JSON text (config, forecast, plant_restart, recorder_drops) or plain text "
+                                    "(reject, degraded: the reason; neighbour_alive, neighbour_gone: its id)")
 
 
 class Plant(Msg):
     """True plant state in simulation (topic ``.../plant``); not available on real hardware."""
 
-    t: float = Field(description="s")
-    i: float = Field(description="A")
-    v: float = Field(description="V")
-    u: float = Field(description="V")
+    t: float = Field(description="sample time, s")
+    i: float = Field(description="true source-branch current, A")
+    v: float = Field(description="true terminal voltage, V")
+    u: float = Field(description="true source voltage, V")
     P_l: float = Field(description="load power, W")
 
 
@@ -128,18 +130,6 @@ MESSAGE_MODELS: dict[str, type[Msg]] = {
 
 
 def json_schema(model: type[BaseModel]) -> dict:
+    """The model's plain JSON Schema: what recordings carry for their JSON-encoded channels. The files in
+    schemas/json add the binary wire layout (schemas.generate)."""
     return model.model_json_schema()
-
-
-def write_json_schemas(out_dir: str | Path) -> list[Path]:
-    """Write one <name>.json per message model and the scenario model; returns the paths."""
-    from .scenario import Scenario
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for name, model in {**MESSAGE_MODELS, "energyctl.Scenario": Scenario}.items():
-        p = out / f"{name}.json"
-        p.write_text(json.dumps(json_schema(model), indent=2, sort_keys=True) + "\n")
-        paths.append(p)
-    return paths

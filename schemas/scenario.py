@@ -25,22 +25,22 @@ class Strict(BaseModel):
 class CircuitParams(Strict):
     """Series R-L source branch and shunt C at the terminal (paper Eqn RLCEqn)."""
 
-    R_ohm: NonNeg = 0.01
-    L_H: Pos = 1.12e-3
-    C_F: Pos = 6.8e-3
+    R_ohm: NonNeg = Field(default=0.01, description="series resistance of the source branch, Ω")
+    L_H: Pos = Field(default=1.12e-3, description="series inductance of the source branch, H")
+    C_F: Pos = Field(default=6.8e-3, description="shunt capacitance at the terminal, F")
 
 
 class InitialState(Strict):
-    i_A: Finite = 1.0
-    v_V: Pos = 80.0
-    u_V: Finite | None = Field(default=None, description="source voltage; default: v_V + R i")
+    i_A: Finite = Field(default=1.0, description="initial source-branch current, A")
+    v_V: Pos = Field(default=80.0, description="initial terminal voltage, V")
+    u_V: Finite | None = Field(default=None, description="initial source voltage, V; default: v_V + R i")
 
 
 class SourceLimits(Strict):
     """Physical limits of the controllable voltage source (the actuator)."""
 
-    u_min_V: Finite = 0.0
-    u_max_V: Finite = 200.0
+    u_min_V: Finite = Field(default=0.0, description="lowest source voltage the plant's source reaches, V")
+    u_max_V: Finite = Field(default=200.0, description="highest source voltage the plant's source reaches, V")
 
     @model_validator(mode="after")
     def _order(self) -> SourceLimits:
@@ -53,14 +53,14 @@ class PlantConfig(CircuitParams):
     initial: InitialState = InitialState()
     source: SourceLimits = SourceLimits()
     v_cpl_min_V: Pos = Field(
-        default=5.0, description="below this terminal voltage the CPL behaves as a constant resistance"
+        default=5.0, description="below this terminal voltage (V) the CPL behaves as a constant resistance"
     )
 
 
 class SineComponent(Strict):
-    amplitude: Finite
-    freq_hz: NonNeg
-    phase_rad: Finite = 0.0
+    amplitude: Finite = Field(description="amplitude, in the profile's unit (W for a load, V for a disturbance)")
+    freq_hz: NonNeg = Field(description="frequency, Hz")
+    phase_rad: Finite = Field(default=0.0, description="phase at t = 0, rad")
 
 
 class ProfileConfig(Strict):
@@ -70,11 +70,16 @@ class ProfileConfig(Strict):
     ``sines`` (value + sum of ``components``), ``csv`` (piecewise-linear, columns t_s,value).
     """
 
-    kind: Literal["constant", "steps", "sines", "csv"] = "constant"
-    value: Finite = 0.0
-    steps: list[tuple[NonNeg, Finite]] = []
-    components: list[SineComponent] = []
-    csv_path: str | None = None
+    kind: Literal["constant", "steps", "sines", "csv"] = Field(
+        default="constant", description="constant: value; steps: value, then each [t_s, value] of steps from its "
+                                        "time on; sines: value + the components; csv: piecewise-linear from csv_path")
+    value: Finite = Field(default=0.0, description="the constant, or the base of steps and sines, in the profile's "
+                                                   "unit (W for a load, V for a disturbance)")
+    steps: list[tuple[NonNeg, Finite]] = Field(
+        default=[], description="[[t_s, value], ...] sorted by time: from t_s (s) on, the profile is value (W or V)")
+    components: list[SineComponent] = Field(default=[], description="sines added to value")
+    csv_path: str | None = Field(default=None, description="csv file with columns t_s (s), value (W or V); a "
+                                                          "relative path is taken from base_dir")
 
     @model_validator(mode="after")
     def _consistent(self) -> ProfileConfig:
@@ -90,23 +95,28 @@ class ProfileConfig(Strict):
 class LoadConfig(ProfileConfig):
     """The neighbour Sigma_2: a constant-power load absorbing P_l(t) (W)."""
 
-    value: Finite = 1200.0
+    value: Finite = Field(default=1200.0, description="the load power, or the base of steps and sines, W")
 
 
 class SensorConfig(Strict):
     """Measurement chain: seeded white noise (standard deviation) and quantisation (LSB)."""
 
-    noise_v_V: NonNeg = 0.0
-    noise_i_A: NonNeg = 0.0
-    lsb_v_V: NonNeg = 0.0
-    lsb_i_A: NonNeg = 0.0
+    noise_v_V: NonNeg = Field(default=0.0, description="standard deviation of the noise on measured voltages "
+                                                       "(v, u), V; 0: none")
+    noise_i_A: NonNeg = Field(default=0.0, description="standard deviation of the noise on measured currents "
+                                                       "(i, i_load), A; 0: none")
+    lsb_v_V: NonNeg = Field(default=0.0, description="quantisation step of measured voltages, V; 0: none")
+    lsb_i_A: NonNeg = Field(default=0.0, description="quantisation step of measured currents, A; 0: none")
 
 
 class TimingConfig(Strict):
-    control_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = 10_000.0
-    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = 1e-5
-    delay_samples: Annotated[int, Field(ge=0, le=200)] = 0
-    duration_s: Annotated[float, Field(gt=0, le=3600)] = 0.2
+    control_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = Field(
+        default=10_000.0, description="sampling and control rate, Hz")
+    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = Field(
+        default=1e-5, description="the plant's integration step, s")
+    delay_samples: Annotated[int, Field(ge=0, le=200)] = Field(
+        default=0, description="loop delay: the command answering sample k acts from sample k + this (samples)")
+    duration_s: Annotated[float, Field(gt=0, le=3600)] = Field(default=0.2, description="simulated time, s")
     command_loss: Annotated[float, Field(ge=0, lt=1)] = Field(
         default=0.0, description="probability that a command never reaches the plant, seeded: its predecessor's "
                                  "plan acts in its period (the source holds its voltage if that one was lost too)")
@@ -126,10 +136,10 @@ class TimingConfig(Strict):
 class LimitsConfig(Strict):
     """Actuator limits the controller enforces on its own command."""
 
-    u_min_V: Finite = 0.0
-    u_max_V: Finite = 200.0
-    du_dt_max_V_per_s: Pos = 2.0e5
-    i_floor_A: Pos = Field(default=0.5, description="current floor where a law divides by i")
+    u_min_V: Finite = Field(default=0.0, description="lowest source voltage the controller commands, V")
+    u_max_V: Finite = Field(default=200.0, description="highest source voltage the controller commands, V")
+    du_dt_max_V_per_s: Pos = Field(default=2.0e5, description="largest |du/dt| the controller commands, V/s")
+    i_floor_A: Pos = Field(default=0.5, description="current floor where a law divides by i, A")
 
     @model_validator(mode="after")
     def _order(self) -> LimitsConfig:
@@ -152,10 +162,14 @@ class ControllerConfig(Strict):
     ``continuous`` evaluates Eqn ControlImp as printed, du/dt = (u di/dt - u_z)/i.
     """
 
-    kind: ControllerKind = "fblc"
-    v_ref_V: Pos = 80.0
+    kind: ControllerKind = Field(default="fblc", description="control law: fblc energy feedback linearisation, "
+                                                             "smc energy sliding mode, lqr proportional baseline, bm "
+                                                             "Brayton-Moser baseline, fixed du/dt = 0")
+    v_ref_V: Pos = Field(default=80.0, description="terminal voltage reference, V")
     K_per_s: Pos = Field(default=2000.0, description="energy-space gain K (1/s)")
-    mapping: Literal["exact", "continuous"] = "exact"
+    mapping: Literal["exact", "continuous"] = Field(
+        default="exact", description="exact: the constant du/dt of the next period that lands y_z on the law's "
+                                     "target at the period's end; continuous: du/dt = (u di/dt - u_z) / i as printed")
     regulation: Literal["paper", "energy"] = Field(
         default="paper",
         description="y_ref: 'paper' P^{r,in} v_ref / v (Eqn OutputRefRLCReg); 'energy' P^{r,in} + "
@@ -167,18 +181,20 @@ class ControllerConfig(Strict):
         description="True: u_z cancels eta - 4E_t so e decays at exactly K; False: paper's general form "
         "u_z = -eta - K e + dy_ref/dt, which leaves -4E_t in the closed loop",
     )
-    smc_bound_W_per_s: NonNeg = Field(default=1.0e6, description="L-bar, bound on the uncancelled term")
-    smc_boundary_W: NonNeg = Field(default=0.0, description="boundary layer width phi; 0 = pure sign")
-    lqr_K1_ohm: Finite = 0.4512
-    lqr_K2: Finite = 0.45
-    bm_K1: Finite = 0.3756
-    bm_K2_s: Finite = 1.8e-3
-    bm_K3_S: Finite = 1.0
-    bm_Pi_W: NonNeg = 2400.0
+    smc_bound_W_per_s: NonNeg = Field(default=1.0e6, description="L-bar, bound on the uncancelled term, W/s")
+    smc_boundary_W: NonNeg = Field(default=0.0, description="boundary layer width phi, W; 0 = pure sign")
+    lqr_K1_ohm: Finite = Field(default=0.4512, description="lqr: current gain K1 in u = u_ref - K1 (i - i_ref) - "
+                                                           "K2 (v - v_ref), Ω")
+    lqr_K2: Finite = Field(default=0.45, description="lqr: voltage gain K2 (dimensionless, V/V)")
+    bm_K1: Finite = Field(default=0.3756, description="bm: voltage gain K1 in u = R i + v_ref - L (Pi / v^2 + K3) "
+                                                      "dv/dt - K1 (v - v_ref) - K2 dv/dt (dimensionless, V/V)")
+    bm_K2_s: Finite = Field(default=1.8e-3, description="bm: damping gain K2 on dv/dt, s")
+    bm_K3_S: Finite = Field(default=1.0, description="bm: gain K3, S")
+    bm_Pi_W: NonNeg = Field(default=2400.0, description="bm: power Pi in the damping term L (Pi / v^2 + K3) dv/dt, W")
     delay_compensation_samples: Annotated[int, Field(ge=0, le=200)] | None = Field(
         default=None, description="samples of loop delay to predict over; None = the known loop delay"
     )
-    deriv_tau_s: Pos = Field(default=5e-4, description="estimator derivative window time constant")
+    deriv_tau_s: Pos = Field(default=5e-4, description="estimator derivative window time constant, s")
     plan_next_period: bool = Field(
         default=True, description="each command also carries du/dt planned for the period after it (the same law "
                                   "applied to the predicted state there); the plant applies that plan when the next "
@@ -218,8 +234,9 @@ class OutgoingForecastConfig(Strict):
 class FeasibilityConfig(Strict):
     """Per-window interaction ranges (paper Eqn IncomingIntRange)."""
 
-    window_s: Pos = 1.0
-    forecast_margin: NonNeg = Field(default=0.0, description="relative widening of the load forecast")
+    window_s: Pos = Field(default=1.0, description="length T_s of the windows the interaction ranges are for, s")
+    forecast_margin: NonNeg = Field(default=0.0, description="relative widening of the load forecast (fraction of "
+                                                             "its largest magnitude, each side)")
     literal_paper_range: bool = Field(
         default=False,
         description="True: Qdot range offset (2/tau')[P_min, P_max] as printed; False: (2/tau')[-P_max, P_max]",
@@ -228,9 +245,9 @@ class FeasibilityConfig(Strict):
 
 
 class Scenario(Strict):
-    name: str = "scenario"
-    description: str = ""
-    seed: int = 1
+    name: str = Field(default="scenario", description="name of the scenario (not empty)")
+    description: str = Field(default="", description="free text")
+    seed: int = Field(default=1, description="seed of the sensor noise and the command loss and lateness draws")
     plant: PlantConfig = PlantConfig()
     model: CircuitParams = CircuitParams()
     load: LoadConfig = LoadConfig()

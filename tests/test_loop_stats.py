@@ -1,4 +1,5 @@
-"""The loop's time statistics (service.daemon.loop_stats.LoopStats): what status reports, and what a status query costs."""
+"""The loop's time statistics (service.daemon.loop_stats.LoopStats): what status reports, what a status query
+costs."""
 
 from __future__ import annotations
 

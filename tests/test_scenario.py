@@ -80,14 +80,6 @@ def test_sine_profile_rate_is_its_derivative():
     assert lo < 1200 - 300 and hi > 1200 + 300 and hi <= 1650 and dhi <= 300 * 2 * math.pi * 5 + 150 * 2 * math.pi * 13
 
 
-def test_committed_json_schemas_are_generated_from_the_models(tmp_path):
-    from schemas.messages import write_json_schemas
-
-    committed = SCENARIOS.parent / "schemas" / "json"
-    for p in write_json_schemas(tmp_path):
-        assert (committed / p.name).read_text() == p.read_text(), f"run: energyctl schema ({p.name} is stale)"
-
-
 def test_shipped_live_configs_validate():
     from schemas.component import ComponentConfig, LoadPeerConfig, PlantPeerConfig, load_config
 

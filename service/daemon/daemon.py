@@ -28,6 +28,7 @@ from schemas.component import ComponentConfig
 from schemas.scenario import ControllerConfig
 from service.core import core_metadata, effective_gain, make_core
 from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
+from service.core.interaction import outgoing_power_at as _outgoing_power_at
 from service.daemon.bus import key, latest, open_session, publisher, queued
 from service.daemon.forecast_worker import ForecastWorker
 from service.daemon.loop_stats import HIST, LoopStats
@@ -496,14 +497,8 @@ class Daemon(DaemonQueries):
                 fresh = False
             if nb.alive is not nb.alive_seen:
                 self._neighbour_event(nb, t)
-            # P^{r,in} = -sum_j P_j^{r,out} at this sample's time: the neighbour's rate carries its last value
-            # (first-order hold) over the age of its message, t - t_j, by at most neighbour_extrapolate_s either way,
-            # when both are on one clock (|age| <= neighbour_stale_s). Backwards too: a sample answered late (catch-up
-            # after a stall) is older than the neighbour's newest message, which at -18 kW/s was 96 W ahead of it
-            # and, as the prediction's load power, swung the command by 2.3 kV/s. In lockstep the ages are 0 and
-            # this is the plain sum
-            age = t - nb.t
-            P_in -= nb.P + nb.P_dot * max(-horizon_s, min(age, horizon_s)) if 0.0 < abs(age) <= stale_s else nb.P
+            # P^{r,in} = -sum_j P_j^{r,out} at this sample's time (service.core.interaction)
+            P_in -= _outgoing_power_at(t, nb.t, nb.P, nb.P_dot, stale_s, horizon_s)
             P_in_dot -= nb.P_dot
         self.reference = "neighbours" if fresh else "none"
         local = self.cfg.local_reference_W
