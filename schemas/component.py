@@ -112,7 +112,7 @@ class Named(Strict):
     cpus: CpuList = Field(
         default=None, description="CPUs the whole process may run on (sched_setaffinity), Zenoh's threads included, "
                                   "set before anything starts; None = any. A process kept on one CPU hands work "
-                                  "between its own threads without waking another CPU (README: on this VM that "
+                                  "between its own threads without waking another CPU (on a 2-vCPU VM that "
                                   "took Zenoh's put from 90-100 us to 27-32 us)")
 
     @field_validator("id")
@@ -206,7 +206,7 @@ class ComponentConfig(Named):
     log_writer_cpus: CpuList = Field(
         default=None, description="CPUs the recorder's writer process may run on (sched_setaffinity); None = any. "
                                   "Keep it off the CPU the loop runs on: on 2 vCPUs, [1] halved the loop overruns "
-                                  "the writer adds (README)")
+                                  "the writer adds")
 
 
 class PlantPeerConfig(Named):

@@ -1,4 +1,4 @@
-"""The measured loop delay (service/delay.py): identified from u and the commands, in sim, a log and the daemon."""
+"""The measured loop delay (service/core/delay.py): identified from u and the commands, in sim, a log and the daemon."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The compiled core (service/_kernel.c) is the Python core, bit for bit.
+"""The compiled core (service/core/kernel.c) is the Python core, bit for bit.
 
 Every driver uses make_core, which picks the compiled twin when it was built; replay exactness and
 "lockstep equals sim" then hold whichever implementation a machine has only if the two agree exactly.

@@ -115,7 +115,7 @@ def test_logs_open_in_the_typescript_mcap_reader(tmp_path):
     assert got["messages"] == 5 * 200 and got["streamDone"] and got["schemaEncodings"] == ["jsonschema"]
     assert "core" in got["metadata"] and got["sample"]["seq"] == 0
     # a daemon log, with its tick-index attachments: still a valid file for the other reader
-    from clients.bench_tick import _trace, drive_daemon
+    from clients.bench.tick import _trace, drive_daemon
 
     scn, tr = _trace(str(SCENARIOS / "paper-varying-load.toml"), 1000)
     _t, st = drive_daemon(scn, tr, str(tmp_path))
@@ -197,7 +197,7 @@ def test_rotated_daemon_log_replays_across_its_parts_and_records_neighbours_and_
 
 
 def test_fast_log_reader_gives_the_general_readers_arrays(tmp_path):
-    """clients/_mcapscan.c (no Python object per message) and mcap + json read the same doubles, also from a
+    """service/logio/_mcapscan.c (no Python object per message) and mcap + json read the same doubles, also from a
     file cut off mid-chunk (a killed writer); a log not in the recorder's flat JSON falls back to the general
     reader instead of failing."""
     import numpy as np
@@ -247,7 +247,7 @@ def test_tick_index_gives_the_json_channels_inputs_and_is_used_only_when_complet
 
     import numpy as np
 
-    from clients.bench_tick import _trace, drive_daemon
+    from clients.bench.tick import _trace, drive_daemon
     from service import replay as rp
 
     scn, tr = _trace(str(SCENARIOS / "paper-varying-load.toml"), 3000)
@@ -288,7 +288,7 @@ def test_tick_index_gives_the_json_channels_inputs_and_is_used_only_when_complet
 def test_a_daemon_log_with_the_observer_replays_bit_for_bit_and_without_it_does_not(tmp_path):
     """The observer's estimate is core state carried from tick to tick: the replay rebuilds it from the logged
     samples (held and skipped ones included), and a what-if without it finds the first divergence."""
-    from clients.bench_tick import _trace, drive_daemon
+    from clients.bench.tick import _trace, drive_daemon
 
     scn, tr = _trace(str(SCENARIOS / "paper-varying-load.toml"), 1500)
     scn = scn.model_copy(update={"controller": scn.controller.model_copy(update={"observer_gain": 0.15})})

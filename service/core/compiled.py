@@ -1,4 +1,4 @@
-"""The compiled core: ``service/_kernel.c`` behind the same interface as ``core.ControlCore``.
+"""The compiled core: ``service/core/kernel.c`` behind the same interface as ``core.ControlCore``.
 
 The C kernel repeats the Python step operation for operation (see its header), so its du/dt, estimates and
 integrals are bit-identical to the reference (tests/test_kernel.py). It keeps its outputs in one buffer of
@@ -15,7 +15,7 @@ from service.core.energy import RLCEnergy
 from service.core.types import Incoming, Sample
 
 KIND_CODE = {"fixed": 0, "lqr": 1, "bm": 2, "fblc": 3, "smc": 4}
-# output buffer layout: service/_kernel.c, enum O_*
+# output buffer layout: service/core/kernel.h, enum O_*
 (O_DU, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1, O_SEQ, O_T, O_STEPS,
  O_COUNT, O_HAS_EST) = range(17)
 O_EST, O_FITV, O_FITS, O_ZRUN, O_DU_NEXT, O_LATE = 17, 35, 38, 41, 43, 44

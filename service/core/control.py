@@ -284,7 +284,7 @@ class CoreBase:
 
 class ControlCore(CoreBase):
     """Deterministic controller for one RLC source component, in Python: the reference implementation
-    (service/_kernel.c is its compiled twin; see make_core). See the module docstring."""
+    (service/core/kernel.c is its compiled twin; see make_core). See the module docstring."""
 
     def __init__(self, cfg: ControllerConfig, model: CircuitParams, period_s: float,
                  loop_delay_samples: int = 0):

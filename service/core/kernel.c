@@ -197,7 +197,7 @@ static int fit_update(Kernel *k, double t, const double y[3])
     return 1;
 }
 
-/* RLCEnergy.update with u_m = 0 (service/energy.py). */
+/* RLCEnergy.update with u_m = 0 (service/core/energy.py). */
 static void energy_update(double *e, double R, double L, double C, double i, double v, double u, double i2,
                           double di, double dv, double du, double di2)
 {
@@ -625,7 +625,7 @@ static int Kernel_getbuffer(Kernel *self, Py_buffer *view, int flags)
 static PyBufferProcs Kernel_as_buffer = {(getbufferproc)Kernel_getbuffer, NULL};
 
 static PyMethodDef Kernel_methods[] = {
-    {"set_params", (PyCFunction)Kernel_set_params, METH_VARARGS, "set gains and limits (see fastcore.py)"},
+    {"set_params", (PyCFunction)Kernel_set_params, METH_VARARGS, "set gains and limits (see compiled.py)"},
     {"reset", (PyCFunction)Kernel_reset, METH_NOARGS, "forget history"},
     {"step", (PyCFunction)(void (*)(void))Kernel_step, METH_FASTCALL, "one control step"},
     {"step_values", (PyCFunction)(void (*)(void))Kernel_step_values, METH_FASTCALL,
@@ -643,7 +643,7 @@ PyTypeObject KernelType = {
     .tp_name = "service._kernel.Kernel",
     .tp_basicsize = sizeof(Kernel),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "Compiled ControlCore step; outputs in a read-only buffer of doubles (layout in fastcore.py).",
+    .tp_doc = "Compiled ControlCore step; outputs in a read-only buffer of doubles (layout in compiled.py).",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Kernel_init,
     .tp_dealloc = (destructor)Kernel_dealloc,

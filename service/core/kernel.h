@@ -17,7 +17,7 @@
 
 enum { K_FIXED = 0, K_LQR = 1, K_BM = 2, K_FBLC = 3, K_SMC = 4 };
 
-/* Output buffer layout (doubles), shared with service/fastcore.py. */
+/* Output buffer layout (doubles), shared with service/core/compiled.py. */
 enum {
     O_DU = 0, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1,
     O_SEQ, O_T, O_STEPS, O_COUNT, O_HAS_EST,

@@ -90,7 +90,7 @@ class Daemon(DaemonQueries):
         self._nb_news = False  # a neighbour message arrived since the loop last looked at the ranges
         self.forecaster: ForecastWorker | None = None
         self.session: zenoh.Session | None = None
-        # (seq, measured u, du/dt sent) of the last HIST ticks, for the measured loop delay (service/delay.py):
+        # (seq, measured u, du/dt sent) of the last HIST ticks, for the measured loop delay (service/core/delay.py):
         # the loop stores, the status query estimates
         self._hist_seq = array("q", [-1] * HIST)
         self._hist_u = array("d", [0.0] * HIST)
@@ -109,7 +109,7 @@ class Daemon(DaemonQueries):
         self.cmd_pub = publisher(s, key(c.prefix, c.id, "cmd"))
         self.z_pub = publisher(s, key(c.prefix, c.id, "z"))
         self.neighbours = [Neighbour(n, latest(s, key(c.prefix, n, "z"))) for n in c.neighbours]
-        # config/set is a key of its own so that a router's ACL can let only operators set (README "Security")
+        # config/set is a key of its own so that a router's ACL can let only operators set (docs/operations.md)
         serve = {"status": self._status_reply, "config": self._config_reply, "config/set": self._config_set_reply}
         self.queryables = {leaf: s.declare_queryable(key(c.prefix, c.id, leaf), zenoh.handlers.FifoChannel(64))
                            for leaf in serve}

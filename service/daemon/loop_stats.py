@@ -83,7 +83,7 @@ class LoopStats:
     def _distributions(self, m: int) -> dict:
         """mean, p50, p99 and max (us) of each ring over its m filled ticks, computed in one scratch ring made once:
         numpy's partition and masks made 800 KB temporaries for each distribution at 100 000 ticks, 3 MB per
-        recompute, which glibc served from the querying thread's arena once its mmap threshold had risen (README,
+        recompute, which glibc served from the querying thread's arena once its mmap threshold had risen (docs/decisions,
         "The soak")."""
         if self._scratch is None:
             self._scratch = np.empty(self.n, dtype=np.int64)

@@ -79,7 +79,7 @@ class DaemonQueries:
         }
 
     def _loop_delay(self) -> dict:
-        """The loop delay measured over this plant epoch's newest ticks (service/delay.py), against the delay the
+        """The loop delay measured over this plant epoch's newest ticks (service/core/delay.py), against the delay the
         core compensates; read while the loop writes, so a sample at the edge may be torn (a diagnostic, not a
         control input). The estimate takes ~0.4 ms of numpy, mostly holding the GIL the loop needs, so a status
         query reuses one younger than LOOP_DELAY_EVERY_NS (the final status after shutdown is always fresh)."""

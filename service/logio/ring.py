@@ -30,7 +30,7 @@ from service.logio.tickindex import TickIndex
 
 SLOT = 128
 _HDR = struct.Struct("<QQQ")  # (unused), messages taken by the writer (statistics only), flags (bytes 16, 17)
-_STOP, _FAILED = 16, 17  # header bytes: asked to finish; the writer failed (_kernel.c RING_FAILED)
+_STOP, _FAILED = 16, 17  # header bytes: asked to finish; the writer failed (tickwriter.c RING_FAILED)
 _SLOT_HDR = struct.Struct("<Bd")  # topic id, log time (s); after the one-byte slot flag
 _PAYLOAD = 1 + _SLOT_HDR.size
 

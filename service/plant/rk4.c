@@ -1,7 +1,7 @@
 #include "kernel.h"
 
 /* plant_steps(R, L, C, v_min, u_min, u_max, clip, r, h, n_sub, Pa, dP, ma, dm, i, v, u) -> (i, v, u):
- * service/plant.py RLCPlant.advance's RK4 loop, operation for operation (the HIL plant and sim at 10 kHz spent
+ * service/plant/rlc.py RLCPlant.advance's RK4 loop, operation for operation (the HIL plant and sim at 10 kHz spent
  * most of their time in it). */
 PyObject *plant_steps(PyObject *Py_UNUSED(mod), PyObject *const *args, Py_ssize_t nargs)
 {

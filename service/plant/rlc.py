@@ -78,7 +78,7 @@ def rk4_steps(R: float, L: float, C: float, vmin: float, umin: float, umax: floa
               u: float) -> tuple[float, float, float]:
     """RLCPlant.advance's integration: n_sub RK4 steps of h seconds from (i, v, u) at source rate r (V/s), load
     power Pa + k dP at substep k (W), disturbance ma + k dm (V); u clipped to [umin, umax] when clip. The
-    compiled twin (service/_kernel.c plant_steps) does the same operations in the same order."""
+    compiled twin (service/plant/rk4.c plant_steps) does the same operations in the same order."""
     hh = 0.5 * h
     vmin2 = vmin * vmin
     for k in range(int(n_sub)):
