@@ -3,8 +3,8 @@
 On a small machine (2 vCPUs here) the loop, the HIL plant and Zenoh's threads share the cores with work that can
 wait: the recorder's writer (JSON, zstd, file I/O) and the forecast worker (4-40 ms of closed-loop simulation per
 window). At equal priority the scheduler gives them the core at the wrong moment, and the sample arrives, or the
-command leaves, a period late. Measured (``energyctl bench realtime``, docs/benchmarks.md): at 1 kHz that was most of the
-missed commands.
+command leaves, a period late. Measured (``energyctl bench realtime``, docs/benchmarks.md): at 1 kHz that was
+most of the missed commands.
 
 Linux keeps the nice value per thread and a new thread or process inherits it from the one that creates it, so
 ``set_nice`` is called first thing in a process's main thread: every thread created afterwards (Zenoh's runtime,
@@ -110,8 +110,8 @@ def set_mmap_threshold(nbytes: int | None) -> str | None:
     """glibc: serve every block of ``nbytes`` or more by its own mapping, returned to the system when freed, and keep
     that threshold fixed (None or 0: leave glibc's dynamic one, which rises to the size of each such block freed, up
     to 32 MiB; from then on large temporaries come from the thread arenas and their pages stay resident). Measured
-    (docs/decisions, the mmap threshold): with it, the daemon's resident size is about 4 MB lower and grows less in a soak. Returns a
-    one-line reason when the C library has no mallopt or refused, else None. Needs no privilege."""
+    (docs/decisions, the mmap threshold): with it, the daemon's resident size is about 4 MB lower and grows less in
+    a soak. Returns a one-line reason when the C library has no mallopt or refused, else None. Needs no privilege."""
     if not nbytes:
         return None
     mallopt = _libc("mallopt")
@@ -132,7 +132,8 @@ def fill_tuple_free_lists() -> None:
     CPython keeps up to 2000 freed tuples of each length 1-20 for reuse; they stay allocated. In the daemon these
     lists grew by a few tuples a second for minutes (measured in a 3 kHz soak with ``sys._debugmallocstats``: the
     17- and 4-long ones +480 each in 2 minutes, one of each per forecast window, and these were exactly the blocks
-    that tracemalloc saw as "live" and the Python arena's resident pages that kept growing; docs/decisions, the tuple free lists).
+    that tracemalloc saw as "live" and the Python arena's resident pages that kept growing; docs/decisions, the
+    tuple free lists).
     That looked like a leak of ~60 KiB/min and levelled off only when the lists were full. Making 2000 tuples of
     each length and freeing them fills every list at once: ~5 MB up front, no growth afterwards. A list already
     full stays as it is (a tuple freed to a full list goes back to the allocator)."""

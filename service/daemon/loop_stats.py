@@ -83,8 +83,8 @@ class LoopStats:
     def _distributions(self, m: int) -> dict:
         """mean, p50, p99 and max (us) of each ring over its m filled ticks, computed in one scratch ring made once:
         numpy's partition and masks made 800 KB temporaries for each distribution at 100 000 ticks, 3 MB per
-        recompute, which glibc served from the querying thread's arena once its mmap threshold had risen (docs/decisions,
-        "The soak")."""
+        recompute, which glibc served from the querying thread's arena once its mmap threshold had risen
+        (docs/decisions, the scratch ring)."""
         if self._scratch is None:
             self._scratch = np.empty(self.n, dtype=np.int64)
         ex = np.frombuffer(self.exec, dtype=np.int64)[:m]
