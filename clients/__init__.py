@@ -1,1 +1,3 @@
-"""Clients: hardware-in-the-loop plant, neighbour load, query client, replay, and the energyctl CLI."""
+"""Clients: the energyctl CLI (cli.py assembling commands/, shared options in options.py), the hardware-in-the-loop
+plant and neighbour load stand-ins (peers/), the query client, process orchestration for demos (live.py), the secure
+profile, log tools, the report, and the benches (bench/)."""

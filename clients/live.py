@@ -1,4 +1,5 @@
-"""Live processes: energyctl run / plant / load, and the loopback demo that starts all three."""
+"""Live processes: what energyctl run / plant / load do first (start_process), the configs of a loopback stack
+for a scenario, child processes that are always stopped, and the loopback demo that starts all three."""
 
 from __future__ import annotations
 
@@ -46,69 +47,6 @@ def start_process(cfg, command: str) -> threading.Event:
         if refused:
             print(f"energyctl {command}: {refused}", file=sys.stderr, flush=True)
     return stop
-
-
-def run_daemon(cfg: ComponentConfig, stats_out: str | None = None) -> int:
-    from service.daemon.daemon import Daemon
-
-    stop = start_process(cfg, "run")
-    d = Daemon(cfg)
-    d.open()
-    loop = threading.Thread(target=d.run_loop, name="loop", daemon=True)
-    loop.start()
-    print(f"energyctl run: {cfg.id} active, {cfg.loop.rate_hz:g} Hz {cfg.loop.trigger} trigger "
-          f"({'lockstep' if cfg.loop.lockstep else 'free-running'}), neighbours {cfg.neighbours or 'none'}",
-          file=sys.stderr, flush=True)
-    warned = False
-    while not stop.is_set() and loop.is_alive():
-        stop.wait(0.05)
-        if not warned and d.recorder is not None and d.recorder.failed:
-            warned = True  # once: control goes on without the log
-            print(f"energyctl run: logging degraded, control continues: {d.recorder.error}", file=sys.stderr,
-                  flush=True)
-    d.stop()
-    loop.join(timeout=1.0)
-    d.close()
-    status = d.status()
-    if stats_out:
-        Path(stats_out).write_text(json.dumps(status))
-    print(json.dumps({"id": cfg.id, "loop": status["loop"], "rejected": status["rejected"]}), flush=True)
-    return 0
-
-
-def run_plant_cmd(cfg: PlantPeerConfig, json_out: bool) -> int:
-    from clients.peers import run_plant
-
-    stop = start_process(cfg, "plant")
-    try:
-        res = run_plant(cfg, stop)
-    except RuntimeError as e:
-        print(f"energyctl plant: {e}", file=sys.stderr)
-        return 1
-    res.pop("trace")
-    print(json.dumps(res) if json_out else _plant_text(res), flush=True)
-    return 0
-
-
-def _plant_text(res: dict) -> str:
-    from clients.table import metrics_table
-
-    lines = [metrics_table([(["plant", res["pacing"]], res["metrics"])], ["", "pacing"])]
-    lines.append("counters: " + ", ".join(f"{k} {v}" for k, v in res["counters"].items()))
-    if "latency_us" in res:
-        lat = res["latency_us"]
-        lines.append(f"measurement->command latency: p50 {lat['p50']:.0f} us, p99 {lat['p99']:.0f} us, "
-                     f"max {lat['max']:.0f} us")
-    return "\n".join(lines)
-
-
-def run_load_cmd(cfg: LoadPeerConfig) -> int:
-    from clients.peers import run_load
-
-    stop = start_process(cfg, "load")
-    res = run_load(cfg, stop)
-    print(json.dumps(res), flush=True)
-    return 0
 
 
 def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz: float | None = None,

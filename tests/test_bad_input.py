@@ -162,7 +162,7 @@ def test_rejections_are_recorded_as_diagnostics_without_flooding_the_log(tmp_pat
     """Each rejected class is a diagnostics event in the MCAP naming its field; a plant rejected at every sample
     (it diverged) gives at most one event per reason per REJECT_EVENT_EVERY_NS of the loop's clock, each saying
     how many it stands for, while status counts every one."""
-    from clients.faults import read_messages
+    from clients.bench.recovery import read_messages
     from service.daemon.daemon import REJECT_EVENT_EVERY_NS
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")

@@ -67,6 +67,46 @@ def test_bad_input_exits_2_with_the_field_named(capsys, tmp_path):
     assert main(["sim", str(tmp_path / "nope.toml")]) == 2
 
 
+def test_every_help_stands_on_its_own(capsys):
+    """No --help sends the reader elsewhere (README, an issue number) to know what a command does."""
+    import re
+
+    for cmd in [[], *([c] for c in _commands())]:
+        with pytest.raises(SystemExit):
+            main([*cmd, "--help"])
+        text = capsys.readouterr().out
+        assert "README" not in text and not re.search(r"\bissue", text, flags=re.I), cmd
+
+
+def _commands() -> list[str]:
+    import argparse
+
+    from clients.cli import build_parser
+
+    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    return list(sub.choices)
+
+
+@pytest.mark.parametrize(("cmd", "model", "example"), [("run", "ComponentConfig", "--set controller.K_per_s="),
+                                                       ("plant", "PlantPeerConfig", "--set duration_s="),
+                                                       ("load", "LoadPeerConfig", "--set load.value=")])
+def test_the_config_commands_list_every_key_of_their_config(capsys, cmd, model, example):
+    """run / plant / load --help list the keys of the --config file from the model itself, nested tables as dotted
+    keys with the table's own defaults; their --set example is a key of that file, not of a scenario."""
+    import schemas.component as sc
+
+    with pytest.raises(SystemExit):
+        main([cmd, "--help"])
+    text = " ".join(capsys.readouterr().out.split())  # unwrapped
+    cls = getattr(sc, model)
+    for name in cls.model_fields:
+        assert f" {name} " in text or f" {name}." in text, name
+    assert example in text and "timing." not in text
+    if cmd == "run":
+        assert "loop.rate_hz = 10000.0" in text and "zenoh.connect = []" in text
+        assert "forecast.enabled = true" in text  # the daemon's default, not OutgoingForecastConfig's own
+
+
 def test_demo_regulates_and_writes_its_log(tmp_path, capsys):
     assert main(["demo", "--logs", str(tmp_path), "--set", "timing.duration_s=0.1"]) == 0
     assert "regulated" in capsys.readouterr().out
@@ -123,7 +163,7 @@ def test_bench_wake_measures_both_slack_settings_and_gives_the_thread_its_own_ba
 
 def test_realtime_bench_judges_each_criterion():
     """bench realtime's verdict: every criterion of issue 3 can fail a run on its own."""
-    from clients.bench_realtime import judge
+    from clients.bench.realtime import judge
 
     good = {"counters": {"samples": 10_000, "missed": 5, "late": 4},
             "metrics": {"diverged": False, "hold_max_dev_pct": 1.9},
@@ -140,7 +180,7 @@ def test_realtime_bench_judges_each_criterion():
 def test_realtime_bench_schedules_are_samples_or_a_time_per_rate():
     import pytest
 
-    from clients.bench_realtime import schedule_samples
+    from clients.bench.realtime import schedule_samples
     from schemas.scenario import ScenarioError
 
     assert [schedule_samples("8ms", r) for r in (1000.0, 2000.0, 5000.0)] == [8, 16, 40]
@@ -151,7 +191,7 @@ def test_realtime_bench_schedules_are_samples_or_a_time_per_rate():
 
 
 def test_realtime_bench_summary_counts_each_arm_and_rate_on_its_own():
-    from clients.bench_realtime import summarize
+    from clients.bench.realtime import summarize
 
     def row(arm, rate, dev, diverged=False, ok=False, missed=1.0, steal=0.5):
         return {"arm": arm, "rate_hz": rate, "delay_samples": 3, "v_dev_after_50ms_pct": dev, "diverged": diverged,
@@ -171,7 +211,7 @@ def test_realtime_bench_summary_counts_each_arm_and_rate_on_its_own():
 def test_a_rate_the_configs_refuse_is_one_row_saying_why_and_the_search_goes_on():
     """bench realtime: a schedule longer than the configs allow (here 300 samples) is reported, not a crash that
     loses the rates already run; nothing is started for it."""
-    from clients.bench_realtime import bench_realtime, progress_line
+    from clients.bench.realtime import bench_realtime, progress_line
     from schemas.scenario import load_scenario
 
     seen = []
@@ -186,7 +226,7 @@ def test_a_rate_the_configs_refuse_is_one_row_saying_why_and_the_search_goes_on(
 def test_the_controllers_share_of_the_misses_counts_only_samples_the_rig_handled_on_time():
     """A sample counts when the stand-in sent it on time and was on time at the period its command is for
     (sample j + d); of those, the ones not answered in time are the controller's and the transport's."""
-    from clients.peers import rig_on_time_misses
+    from clients.peers.plant import rig_on_time_misses
 
     d, n = 2, 10
     sent = bytearray([1] * n)
@@ -205,7 +245,7 @@ def test_the_plant_takes_commands_by_their_arrival_stamps_not_by_when_it_reads_t
     although read late; the first stamped after it is held, with all behind it, for the next period."""
     from queue import Queue
 
-    from clients.peers import StampedInbox
+    from clients.peers.plant import StampedInbox
 
     q = Queue()
     for t_rx, seq in ((90, 0), (100, 1), (101, 2), (150, 3)):
@@ -316,7 +356,7 @@ def test_realtime_stacks_take_the_load_power_the_neighbour_announces_unless_the_
 def test_bench_middleware_measures_each_fact_of_the_design_notes():
     """A short run: every part reports, and the numbers hang together (one way is part of the round trip; a
     1 kHz loop polling a ring sees the 1 kHz stream in most periods; a killed token holder is seen gone)."""
-    from clients.bench_middleware import bench_middleware
+    from clients.bench.middleware import bench_middleware
 
     r = bench_middleware(n=100, receive_s=0.5)
     assert r["put_us_no_subscriber"]["n"] == r["put_us_subscriber_in_another_process"]["n"] == 100
@@ -406,7 +446,7 @@ def test_the_soak_tells_a_leak_from_an_allocator_warming_up():
     as in the first; one that levels off grows in the first only."""
     import numpy as np
 
-    from clients.bench_soak import half_growth
+    from clients.bench.soak import half_growth
 
     t = np.arange(0.0, 600.0)
     leak = 100_000 + 2.0 * t
@@ -420,9 +460,9 @@ def test_the_soak_runs_the_stack_that_bench_realtime_judges(tmp_path):
     """Until 2026-12-02 the soak built its own loop (a clock trigger and the paper's gain, no loop-delay schedule):
     its plant diverged within the first seconds, and ten minutes measured a daemon holding every sample as out of
     range. The soak now runs bench realtime's stack for the same scenario, rate and schedule."""
-    from clients.bench_realtime import schedule_samples
-    from clients.bench_soak import EMBEDDED, soak_configs
-    from clients.cli import DEMO_REALTIME_SETS
+    from clients.bench.realtime import schedule_samples
+    from clients.bench.soak import EMBEDDED, soak_configs
+    from clients.commands.demo import DEMO_REALTIME_SETS
     from clients.live import configs_from_scenario
 
     comp, plant, load = soak_configs("tcp/127.0.0.1:1", tmp_path, 600.0, 3000.0, DEMO_REALTIME_SETS)

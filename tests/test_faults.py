@@ -8,7 +8,7 @@ import signal
 
 from conftest import SCENARIOS
 
-from clients.faults import Rig, read_messages
+from clients.bench.recovery import Rig, read_messages
 from schemas.scenario import load_scenario
 from service.replay import replay
 

@@ -12,7 +12,7 @@ from conftest import ROOT, SCENARIOS
 from mcap.reader import make_reader
 
 from clients.live import configs_from_scenario, run_live, wait_until
-from clients.peers import run_load
+from clients.peers.load import run_load
 from clients.query import QueryError, query
 from schemas.codec import CMD, MEAS
 from schemas.component import ComponentConfig, LoadPeerConfig, ZenohConfig, config_from_dict
@@ -145,13 +145,15 @@ def test_the_daemon_forecasts_each_announced_window_and_checks_it_ahead(daemon_a
     def forecast():
         return query(zc(ep), "energyctl", "source", "status")["feasibility"]["forecast"]
 
-    assert wait_until(lambda: (forecast().get("window") or 0) >= 2, 20.0)
+    # one forecast per window, a constant load's from the cache; a window announced while the worker is still busy
+    # with the one before is skipped for the newer one (a loaded machine), so wait for three to be answered
+    assert wait_until(lambda: (f := forecast()).get("computed", 0) + f.get("cache_hits", 0) >= 3, 20.0)
     f = forecast()
     box = d.neighbours[0].box(f["window"])
     assert f["feasible"] and f["reason"] == "" and box is not None
     assert f["Z_out"]["P"] == [-box[1], -box[0]] and f["Z_out"]["P_dot"] == [-box[3], -box[2]]
     assert f["Z_out"]["Qdot"][0] < 0 < f["Z_out"]["Qdot"][1]  # a load that may switch moves Qdot^{r,out}
-    assert f["computed"] >= 1 and f["computed"] + f["cache_hits"] >= 3  # one per window; a constant load: cached
+    assert f["computed"] >= 1 and f["window"] >= 2
     # a gain too low for the incoming range (tau' = 1/K grows): the next window is flagged before it starts
     query(zc(ep), "energyctl", "source", "config", sets=["controller.K_per_s=10.0"])
     assert wait_until(lambda: forecast()["feasible"] is False, 10.0)
@@ -419,7 +421,7 @@ def test_a_realtime_plant_starts_its_clock_at_the_controllers_first_answer():
     arm, sample 1 went out a period after sample 0, long before its answer."""
     import time
 
-    from clients.peers import run_plant
+    from clients.peers.plant import run_plant
     from schemas.component import PlantPeerConfig
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
@@ -564,8 +566,8 @@ def test_a_short_soak_regulates_answers_every_query_and_loses_no_record():
     v stays near v_ref, every status query is answered, the recorder drops nothing and nothing is rejected. The
     soak's former stack (clock trigger, one sample of delay, the paper's gain) diverged at this rate within
     seconds in every run, and the daemon rejected every later sample as out of range."""
-    from clients.bench_soak import bench_soak
-    from clients.cli import DEMO_REALTIME_SETS
+    from clients.bench.soak import bench_soak
+    from clients.commands.demo import DEMO_REALTIME_SETS
 
     res = bench_soak(0.1, rate_hz=3000.0, query_hz=20.0, warmup_s=2.0, sets=DEMO_REALTIME_SETS, progress=None)
     assert res["plant_error"] is None and res["diverged"] is False

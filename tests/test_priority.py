@@ -189,8 +189,8 @@ def test_a_process_kept_to_cpus_keeps_the_threads_and_processes_it_starts_there(
 
 
 def test_realtime_stacks_take_cpus_per_role():
-    from clients.cli import role_cpus
     from clients.live import configs_from_scenario
+    from clients.options import role_cpus
 
     cpus = role_cpus("controller=1,plant=0+1")
     assert cpus == {"controller": [1], "plant": [0, 1]}

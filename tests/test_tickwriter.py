@@ -43,7 +43,7 @@ def _bad_samples(d, k: int, t: float) -> None:
 
 
 def _drive(tmp_path, name: str, compiled_tick: bool):
-    from clients.bench_tick import _trace, drive_daemon
+    from clients.bench.tick import _trace, drive_daemon
 
     scn, tr = _trace(str(ROOT / "clients" / "embedded" / "demo.toml"), N)
     skip = set(range(450, 455))  # samples the daemon never gets: a gap in the sequence, counted missing

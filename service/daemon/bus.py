@@ -29,6 +29,9 @@ from schemas.scenario import ScenarioError
 TX_QUEUE_BATCHES = 16  # zenoh.tx_queue_batches unset and no config file: Zenoh's default of 2 drops after 1 ms stalls
 
 
+PEER_DEFAULT_LISTEN = "tcp/127.0.0.1:0"  # a peer given no listen endpoint (and no config file) listens here
+
+
 def key(prefix: str, component_id: str, leaf: str) -> str:
     return f"{prefix}/{component_id}/{leaf}"
 
@@ -45,6 +48,10 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
         cfg.insert_json5("mode", json.dumps(z.mode))
     if z.listen:
         cfg.insert_json5("listen/endpoints", json.dumps(z.listen))
+    elif z.mode == "peer" and not z.config_file:
+        # Zenoh's own default for a peer is every interface ([::]:0), and its gossip then links peers of this host
+        # through a non-loopback address: loopback unless told otherwise
+        cfg.insert_json5("listen/endpoints", json.dumps([PEER_DEFAULT_LISTEN]))
     if z.connect:
         cfg.insert_json5("connect/endpoints", json.dumps(z.connect))
     if not z.config_file or not z.multicast_scouting:

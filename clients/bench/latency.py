@@ -60,7 +60,7 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4, cpus:
     (tmp / "echo.py").write_text(ECHO)
     stats = tmp / "status.json"
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2]) + os.pathsep + env.get("PYTHONPATH", "")
     with Processes() as procs:
         procs.start("daemon", ["run", "--config", str(tmp / "c.toml"), "--stats-out", str(stats)], env=env)
         echo = subprocess.Popen([sys.executable, str(tmp / "echo.py"), ep], env=env,

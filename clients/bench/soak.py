@@ -5,7 +5,7 @@ schedule), so that the soak measures a daemon that regulates: until 2026-12-02 i
 the paper's gain, the plant diverged in the first second, and the soak measured a daemon holding every sample as
 out of range. Reports the daemon's resident memory over time (growth and slope after a warm-up), the loop's
 overruns, the recorder's drops, how many status queries were answered, and whether v stayed regulated (issue 3's
-criteria for the run, ``bench_realtime.judge``).
+criteria for the run, ``clients.bench.realtime.judge``).
 """
 
 from __future__ import annotations
@@ -21,14 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.bench_realtime import judge, schedule_samples, within_band
+from clients.bench.realtime import judge, schedule_samples, within_band
 from clients.live import Processes, _last_json, _toml, configs_from_scenario, wait_until
 from clients.machine import StealMeter
 from schemas.component import ZenohConfig
 from schemas.scenario import load_scenario
 from service.daemon.bus import free_tcp_port, key, open_session
 
-EMBEDDED = Path(__file__).parent / "embedded" / "demo.toml"
+EMBEDDED = Path(__file__).parent.parent / "embedded" / "demo.toml"
 
 
 def rss_kib(pid: int) -> int | None:
@@ -69,6 +69,33 @@ def soak_configs(endpoint: str, log_dir: Path, seconds: float, rate_hz: float, s
     return comp, plant, load
 
 
+class StatusPoller:
+    """The daemon's status queried at query_hz on a thread of its own (``thread``, until ``stop``), counting the
+    queries sent, answered and failed into ``counts``."""
+
+    def __init__(self, session, query_hz: float, counts: dict[str, int]):
+        self.session, self.query_hz, self.counts = session, query_hz, counts
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.run, daemon=True)
+
+    def run(self) -> None:
+        queries, session, stop = self.counts, self.session, self.stop
+        sel = key("energyctl", "source", "status")
+        period = 1.0 / self.query_hz
+        nxt = time.monotonic()
+        while not stop.is_set():
+            nxt += period
+            queries["sent"] += 1
+            try:
+                ok = any(r.ok is not None for r in session.get(sel, timeout=1.0))
+                queries["answered" if ok else "failed"] += 1
+            except Exception:  # noqa: BLE001 - counted
+                queries["failed"] += 1
+            delay_s = nxt - time.monotonic()
+            if delay_s > 0:
+                time.sleep(delay_s)
+
+
 def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.0, warmup_s: float = 30.0,
                record: bool = True, cpus: dict[str, list[int]] | None = None, sets: list[str] | None = None,
                delay: str = "8ms", progress=sys.stderr) -> dict:
@@ -83,7 +110,7 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
     for name, d in (("component", comp), ("plant", plant), ("load", load)):
         (tmp / f"{name}.toml").write_text(_toml(d))
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parent.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2]) + os.pathsep + env.get("PYTHONPATH", "")
     stats = tmp / "status.json"
     rss: list[tuple[float, int]] = []
     queries = {"sent": 0, "answered": 0, "failed": 0}
@@ -94,32 +121,15 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
         procs.start("load", ["load", "--config", str(tmp / "load.toml")], env=env)
         pp = procs.start("plant", ["plant", "--config", str(tmp / "plant.toml"), "--json"], env=env)
         session = open_session(ZenohConfig(mode="peer", connect=[ep]))
-        stop = threading.Event()
-
-        def query_loop() -> None:
-            sel = key("energyctl", "source", "status")
-            period = 1.0 / query_hz
-            nxt = time.monotonic()
-            while not stop.is_set():
-                nxt += period
-                queries["sent"] += 1
-                try:
-                    ok = any(r.ok is not None for r in session.get(sel, timeout=1.0))
-                    queries["answered" if ok else "failed"] += 1
-                except Exception:  # noqa: BLE001 - counted
-                    queries["failed"] += 1
-                delay_s = nxt - time.monotonic()
-                if delay_s > 0:
-                    time.sleep(delay_s)
+        poller = StatusPoller(session, query_hz, queries)
 
         try:
             if not wait_until(lambda: any(r.ok is not None for r in
                                           session.liveliness().get(key("energyctl", "source", "alive"), timeout=0.5)),
                               20.0):
                 raise RuntimeError("daemon did not come up")
-            qt = threading.Thread(target=query_loop, daemon=True)
             if query_hz > 0:
-                qt.start()
+                poller.thread.start()
             steal = StealMeter().start()
             t0 = time.monotonic()
             last_report = t0
@@ -136,9 +146,9 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
                     progress.write(f"\rsoak {min(el, seconds):.0f}/{seconds:.0f} s, daemon RSS {r} KiB   ")
                     progress.flush()
             steal.stop()
-            stop.set()
+            poller.stop.set()
             if query_hz > 0:
-                qt.join(2.0)
+                poller.thread.join(2.0)
         finally:
             session.close()
         outputs = procs.stop_all(timeout_s=10.0)

@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from clients.bench_latency import percentiles
+from clients.bench.latency import percentiles
 from schemas.codec import MEAS
 
 

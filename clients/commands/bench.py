@@ -1,0 +1,194 @@
+"""energyctl bench WHAT: one bench per name (BENCHES), each a small function from the options to its result."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from typing import NamedTuple
+
+from clients.bench.realtime import BAND_PCT, LIMIT_PCT
+from clients.commands.common import DEMO_SCENARIO, load
+from clients.commands.demo import (
+    DEMO_REALTIME_DELAY,
+    DEMO_REALTIME_HZ,
+    DEMO_REALTIME_SETS,
+    REALTIME_STACK_NOTE,
+)
+from clients.options import add_cpus, add_nice, add_scenario_set
+
+
+def _scenario(args: argparse.Namespace) -> str:
+    return args.scenario or str(DEMO_SCENARIO)
+
+
+def _sim(args: argparse.Namespace) -> dict:
+    from clients.bench.sim import bench_sim
+
+    scn = load(_scenario(args), [*(args.set or []), "timing.duration_s=1.0", "timing.plant_step_s=1e-5",
+                                 "timing.control_rate_hz=10000.0"])
+    return bench_sim(scn, args.repeat)
+
+
+def _core(args: argparse.Namespace) -> dict:
+    from clients.bench.core import bench_core
+
+    return bench_core(load(_scenario(args), [*(args.set or []), "timing.duration_s=0.5"]), args.repeat)
+
+
+def _tick(args: argparse.Namespace) -> dict:
+    from clients.bench.tick import bench_tick
+
+    return bench_tick(_scenario(args), n=args.n or 20_000)
+
+
+def _latency(args: argparse.Namespace) -> dict:
+    from clients.bench.latency import bench_latency
+
+    return bench_latency(n=args.n or 3000, wait=args.wait or "block", cpus=(args.cpus or {}).get("controller"))
+
+
+def _recorder(args: argparse.Namespace) -> dict:
+    from clients.bench.recorder import bench_recorder
+    from service.priority import set_nice
+
+    refused = set_nice(args.nice)  # the loop thread (and the writer it spawns, which drops below it)
+    if refused:
+        print(f"energyctl bench: {refused}", file=sys.stderr)
+    cpus = [int(x) for x in args.writer_cpus.split(",")] if args.writer_cpus else None
+    res = bench_recorder(seconds=args.seconds or 10.0, writer_cpus=cpus)
+    res["nice"] = args.nice
+    res["writer_cpus"] = cpus
+    return res
+
+
+def _replay(args: argparse.Namespace) -> dict:
+    from clients.bench.tick import bench_replay
+
+    return bench_replay(_scenario(args), seconds=args.seconds or 10.0)
+
+
+def _realtime(args: argparse.Namespace) -> dict:
+    from clients.bench.realtime import bench_realtime, progress_line
+
+    # with demo --realtime's settings unless --set says otherwise
+    path = _scenario(args)
+    scn = load(path, [*DEMO_REALTIME_SETS, *(args.set or [])])
+    versus = load(path, [*DEMO_REALTIME_SETS, *(args.set or []), *args.versus]) if args.versus else None
+    rates = [float(r) for r in (args.rates or "1000,2000,5000,10000").split(",")]
+    delays = (args.delays or "1,2,3,8ms").split(",")  # samples, or a time: 8ms is 8 samples at 1 kHz, 16 at 2
+    loop = {k: v for k, v in (("wait", args.wait), ("catch_up", args.catch_up)) if v is not None}
+    return bench_realtime(scn, rates, delays, args.seconds or 2.0, loop=loop, nice=args.nice,
+                          repeats=args.runs, scn_versus=versus, cpus=args.cpus,
+                          progress=lambda r: print(progress_line(r), file=sys.stderr, flush=True))
+
+
+def _soak(args: argparse.Namespace) -> dict:
+    from clients.bench.soak import bench_soak
+
+    # the realtime stack of demo --realtime and bench realtime, under the user's --set
+    return bench_soak(args.minutes, rate_hz=args.rate, cpus=args.cpus, sets=[*DEMO_REALTIME_SETS, *(args.set or [])])
+
+
+def _recovery(args: argparse.Namespace) -> dict:
+    from clients.bench.recovery import recovery
+
+    rt = args.realtime
+    scn = load(_scenario(args), [*(DEMO_REALTIME_SETS if rt else []), *(args.set or [])])
+    return recovery(scn, progress=lambda m: print(m, file=sys.stderr, flush=True), realtime=rt,
+                    rate_hz=DEMO_REALTIME_HZ, controller_delay=DEMO_REALTIME_DELAY)
+
+
+def _wake(args: argparse.Namespace) -> dict:
+    from clients.bench.wake import bench_wake
+    from schemas.component import ComponentConfig
+
+    return bench_wake(slack_ns=ComponentConfig.model_fields["timer_slack_ns"].default, n=args.n or 20_000)
+
+
+def _middleware(args: argparse.Namespace) -> dict:
+    from clients.bench.middleware import bench_middleware
+
+    return bench_middleware(n=args.n or 3000, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+
+
+class Bench(NamedTuple):
+    run: Callable[[argparse.Namespace], dict]
+    what: str  # what it measures, for --help
+
+
+BENCHES: dict[str, Bench] = {
+    "sim": Bench(_sim, "real-time ratio"),
+    "core": Bench(_core, "per-step cost, compiled and Python"),
+    "tick": Bench(_tick, "the daemon's whole tick without the network"),
+    "latency": Bench(_latency, "daemon round trip vs bare Zenoh echo"),
+    "recorder": Bench(_recorder, "10 kHz stream set vs bare writer"),
+    "replay": Bench(_replay, "a long 10 kHz daemon log replayed from its tick index and from JSON"),
+    "realtime": Bench(_realtime, f"the highest control rate at which v stays within +-{BAND_PCT:g} % of v_ref "
+                                 f"from 50 ms on, with loop overruns under {LIMIT_PCT:g} % of ticks and missed or "
+                                 f"late commands under {LIMIT_PCT:g} % of samples"),
+    "soak": Bench(_soak, "the realtime stack for minutes: RSS, drops, overruns, regulation"),
+    "recovery": Bench(_recovery, "kill -9 plant / neighbour, time back to +-2 %"),
+    "wake": Bench(_wake, "how late a 60 us timed wait ends at the kernel's default timer slack and at "
+                         "timer_slack_ns's"),
+    "middleware": Bench(_middleware, "the Zenoh and MCAP facts the daemon's design rests on, re-measured: put cost, "
+                                     "one-way and round-trip latency, callback vs polled receive, query round trip, "
+                                     "liveliness loss after kill -9, CPU per message, encoding cost, MCAP writes"),
+}
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    listing = ", ".join(f"'{name}' ({b.what})" for name, b in BENCHES.items())
+    b = subparsers.add_parser(
+        "bench", help="benchmarks: " + listing.replace("%", "%%"),
+        description="Runs one benchmark and prints its result, one key: value line per field (--json: one JSON "
+                    "object). The options below say which benches they apply to.\n\n"
+                    + "\n".join(f"  {name:<12}{b.what}" for name, b in BENCHES.items()))
+    b.add_argument("what", choices=list(BENCHES), help="the bench to run (listed above)")
+    b.add_argument("--rates", metavar="HZ,HZ,...",
+                   help="realtime: control rates to try (default 1000,2000,5000,10000), with "
+                        f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise; {REALTIME_STACK_NOTE}")
+    b.add_argument("--delays", metavar="N,N,...",
+                   help="realtime: loop-delay schedules to try, in samples or as a time (8ms: 8 samples at 1 kHz, 16 "
+                        "at 2 kHz); the controller answers up to that many queued samples after a stall (default "
+                        "1,2,3,8ms)")
+    b.add_argument("--minutes", type=float, default=10.0, help="soak: duration (default %(default)s)")
+    b.add_argument("--rate", type=float, default=10000.0,
+                   help="soak: loop and sample rate, Hz (default %(default)s); the stack is bench realtime's (its "
+                        "--set defaults, an 8 ms loop-delay schedule), with status queries at 100 Hz")
+    b.add_argument("--seconds", type=float, default=None,
+                   help="recorder: paced run length (default 10); replay: log length (default 10); realtime: each "
+                        "run (default 2)")
+    b.add_argument("-n", type=int, default=None,
+                   help="latency: round trips per target (default 3000); tick: ticks (default 20000); wake: waits "
+                        "per setting (default 20000); middleware: puts and pings (default 3000)")
+    b.add_argument("--wait", choices=["block", "spin"], default=None,
+                   help="latency, realtime: the daemon's wait for samples (default: block)")
+    b.add_argument("--runs", type=int, default=1, metavar="N",
+                   help="realtime: runs per rate and schedule (default 1); with --versus, N of each, alternated")
+    b.add_argument("--versus", action="append", default=[], metavar="dotted.key=value",
+                   help="realtime: also run with this override (arm b), alternately with the runs without it (arm "
+                        "a); repeatable. The summary counts, per arm, the runs within ±2 %%, diverged and passing")
+    b.add_argument("--catch-up", type=int, default=None, metavar="N",
+                   help="realtime: answer up to N queued samples in order (loop.catch_up; default: the schedule's "
+                        "length)")
+    add_nice(b)
+    add_cpus(b)
+    b.add_argument("scenario", nargs="?", help="scenario (default: the embedded demo)")
+    add_scenario_set(b)
+    b.add_argument("--writer-cpus", metavar="N,N,...",
+                   help="recorder: CPUs the recorder's writer process may run on (as log_writer_cpus; default any)")
+    b.add_argument("--realtime", action="store_true",
+                   help=f"recovery: wall-clock pacing with demo --realtime's settings ({DEMO_REALTIME_HZ / 1e3:g} kHz, "
+                        f"{DEMO_REALTIME_DELAY}-sample schedule, {' '.join(DEMO_REALTIME_SETS)}) instead of lockstep")
+    b.add_argument("--repeat", type=int, default=3, help="sim, core: passes (default %(default)s)")
+    b.add_argument("--json", action="store_true", help="print one JSON object instead of key: value lines")
+    b.set_defaults(func=run)
+    return b
+
+
+def run(args: argparse.Namespace) -> int:
+    res = BENCHES[args.what].run(args)
+    print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
+    return 0

@@ -1,0 +1,71 @@
+"""What the scenario commands (sim, compare, sweep, demo, bench) share: the controller kinds, the embedded demo
+scenario, and running many scenarios on several processes."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+from schemas.scenario import ScenarioError, load_scenario
+
+EMBEDDED = Path(__file__).parent.parent / "embedded"
+DEMO_SCENARIO = EMBEDDED / "demo.toml"
+CONTROLLERS = ("fblc", "smc", "lqr", "bm", "fixed")
+
+
+def load(path: str, overrides: list[str]):
+    """The scenario at path with the --set overrides applied (ScenarioError names a bad field)."""
+    return load_scenario(path, overrides)
+
+
+def kinds(text: str) -> list[str]:
+    """--controllers: "fblc,lqr" -> ["fblc", "lqr"], each a known controller kind."""
+    found = [k.strip() for k in text.split(",") if k.strip()]
+    bad = [k for k in found if k not in CONTROLLERS]
+    if bad:
+        raise ScenarioError(f"--controllers: unknown {', '.join(bad)} (choose from {', '.join(CONTROLLERS)})")
+    return found
+
+
+def run_one(path: str, overrides: list[str]) -> dict:
+    """The metrics of one offline closed-loop run."""
+    from service.sim import run
+
+    return run(load(path, overrides)).metrics
+
+
+def _worker(job: tuple[str, list[str]]) -> dict:
+    return run_one(*job)
+
+
+def parallel(jobs: list[tuple[str, list[str]]], n_jobs: int | None, progress: bool = False) -> list[dict]:
+    """run_one for each (path, overrides) job on n_jobs processes (default: all cores), results in job order."""
+    n = n_jobs or os.cpu_count() or 1
+    t0 = time.perf_counter()
+    if n == 1 or len(jobs) == 1:
+        out = []
+        for k, j in enumerate(jobs, 1):
+            out.append(_worker(j))
+            if progress:
+                _progress(k, len(jobs), t0)
+        return out
+    import multiprocessing as mp
+
+    with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(n) as pool:
+        out = []
+        for k, m in enumerate(pool.imap(_worker, jobs, chunksize=2), 1):
+            out.append(m)
+            if progress:
+                _progress(k, len(jobs), t0)
+    if progress:
+        sys.stderr.write("\n")
+    return out
+
+
+def _progress(k: int, n: int, t0: float) -> None:
+    el = time.perf_counter() - t0
+    eta = el / k * (n - k)
+    sys.stderr.write(f"\r{k}/{n} runs, {el:.0f} s elapsed, ~{eta:.0f} s left   ")
+    sys.stderr.flush()

@@ -1,0 +1,39 @@
+"""energyctl query: ask a running controller for its status, config (get/set) or a component's interaction."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from clients.options import add_zenoh, zenoh_from_args
+from clients.table import render
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    qu = subparsers.add_parser("query", help="ask a running controller: status, config (get/set), interaction")
+    qu.add_argument("what", choices=["status", "config", "interaction"])
+    qu.add_argument("--component", required=True, metavar="ID")
+    qu.add_argument("--prefix", default="energyctl")
+    qu.add_argument("--set", action="append", metavar="key=value",
+                    help="with 'config': controller.K_per_s=800, lifecycle=inactive, ... (repeatable)")
+    qu.add_argument("--timeout", type=float, default=2.0)
+    qu.add_argument("--json", action="store_true")
+    add_zenoh(qu)
+    qu.set_defaults(func=run)
+    return qu
+
+
+def run(args: argparse.Namespace) -> int:
+    from clients.query import QueryError, flatten, query, unit_of
+
+    try:
+        ans = query(zenoh_from_args(args), args.prefix, args.component, args.what, args.set, args.timeout)
+    except QueryError as e:
+        print(f"energyctl query: {e}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(ans))
+    else:
+        print(render(["field", "value", "unit"], [[k, v, unit_of(k)] for k, v in flatten(ans)]))
+    return 0
