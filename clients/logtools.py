@@ -1,7 +1,7 @@
 """energyctl log info / log recover: inspect any MCAP we write, including one whose writer was killed.
 
-Both read the file as a stream, record by record, without the summary, so a file cut short by
-SIGKILL yields everything up to its last complete chunk.
+Both read the file through ``service.logio.reader.scan``: as a stream, record by record, without the summary, so
+a file cut short by SIGKILL yields everything up to its last complete chunk.
 """
 
 from __future__ import annotations
@@ -9,54 +9,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-
-def scan(path: str | Path, keep_messages: bool = False) -> dict:
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    counts: dict[str, int] = {}
-    nbytes: dict[str, int] = {}
-    metadata: dict[str, dict] = {}
-    messages: list[Message] = []
-    attachments: list[Attachment] = []
-    drops: dict = {}
-    t_first = t_last = None
-    complete = False
-    error = None
-    with open(path, "rb") as f:
-        try:
-            for rec in StreamReader(f, skip_magic=False).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, Message):
-                    topic = channels[rec.channel_id].topic
-                    counts[topic] = counts.get(topic, 0) + 1
-                    nbytes[topic] = nbytes.get(topic, 0) + len(rec.data)
-                    t_first = rec.log_time if t_first is None else min(t_first, rec.log_time)
-                    t_last = rec.log_time if t_last is None else max(t_last, rec.log_time)
-                    if topic.endswith("/events"):
-                        ev = json.loads(rec.data)
-                        if ev.get("kind") == "recorder_drops":
-                            drops = json.loads(ev["detail"])
-                    if keep_messages:
-                        messages.append(rec)
-                elif isinstance(rec, Metadata):
-                    metadata[rec.name] = dict(rec.metadata)
-                elif isinstance(rec, Attachment):
-                    attachments.append(rec)
-                elif isinstance(rec, Footer):
-                    complete = True
-        except Exception as e:  # noqa: BLE001 - a truncated file ends in a partial record
-            error = f"{type(e).__name__}: {e}"
-    return {"path": str(path), "complete": complete, "error": error, "schemas": schemas, "channels": channels,
-            "counts": counts, "bytes": nbytes, "metadata": metadata, "drops": drops, "messages": messages,
-            "attachments": attachments,
-            "duration_s": (t_last - t_first) / 1e9 if t_first is not None else 0.0}
+from service.logio.reader import scan
 
 
 def info(path: str | Path) -> dict:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.logtools import scan
+from service.logio.reader import scan
 
 
 class ReportError(RuntimeError):

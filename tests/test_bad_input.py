@@ -162,8 +162,8 @@ def test_rejections_are_recorded_as_diagnostics_without_flooding_the_log(tmp_pat
     """Each rejected class is a diagnostics event in the MCAP naming its field; a plant rejected at every sample
     (it diverged) gives at most one event per reason per REJECT_EVENT_EVERY_NS of the loop's clock, each saying
     how many it stands for, while status counts every one."""
-    from clients.bench.recovery import read_messages
     from service.daemon.daemon import REJECT_EVENT_EVERY_NS
+    from service.logio.reader import messages as read_messages
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=False, rate_hz=10000.0)

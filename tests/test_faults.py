@@ -8,8 +8,9 @@ import signal
 
 from conftest import SCENARIOS
 
-from clients.bench.recovery import Rig, read_messages
+from clients.bench.recovery import Rig
 from schemas.scenario import load_scenario
+from service.logio.reader import messages as read_messages
 from service.replay import replay
 
 

@@ -22,6 +22,7 @@ from clients.query import QueryError, ask
 from schemas.component import ZenohConfig, merge_tables
 from schemas.scenario import Scenario
 from service.daemon.bus import free_tcp_port
+from service.logio.reader import messages as read_messages
 from service.sim import BAND_SETTLE
 
 
@@ -134,24 +135,6 @@ class Rig:
     def daemon_log(self) -> Path | None:
         logs = sorted(Path(self.cfg["daemon"].get("log_dir") or self.dir).glob("source-*.mcap"))
         return logs[-1] if logs else None
-
-
-def read_messages(path: str | Path, suffix: str) -> list[dict]:
-    """JSON messages of the channels ending in ``suffix``; works on files cut off by SIGKILL too."""
-    from mcap.records import Channel, Message
-    from mcap.stream_reader import StreamReader
-
-    channels, out = {}, []
-    with open(path, "rb") as f:
-        try:
-            for rec in StreamReader(f, skip_magic=False).records:
-                if isinstance(rec, Channel):
-                    channels[rec.id] = rec.topic
-                elif isinstance(rec, Message) and channels.get(rec.channel_id, "").endswith(suffix):
-                    out.append(json.loads(rec.data))
-        except Exception:  # noqa: BLE001 - a cut-off tail: keep what was complete
-            pass
-    return out
 
 
 def recovery_after(t: np.ndarray, v: np.ndarray, t_back: float, v_ref: float) -> float | None:
