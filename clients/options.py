@@ -73,6 +73,25 @@ def add_config_set(parser: argparse.ArgumentParser, examples: str) -> None:
                              "repeatable; the keys are listed below)")
 
 
+def add_config_command(subparsers, name: str, *, help: str, description: str, model: str, file: str,
+                       example: str, set_examples: str, what: str) -> argparse.ArgumentParser:
+    """A command that runs one process from its config (energyctl run / plant / load): --config FILE with the
+    config's keys listed in the epilog (``model``: the class's name in schemas.component, imported only when the
+    help is shown), and --set overrides. ``example``: one key=value for the epilog's explanation; ``what``: whose
+    config it is."""
+
+    def epilog() -> str:
+        from clients.confighelp import config_epilog
+        from schemas import component
+
+        return config_epilog(getattr(component, model), file, example)
+
+    p = subparsers.add_parser(name, help=help, description=description, epilog=LazyText(epilog))
+    p.add_argument("--config", required=True, metavar=file, help=f"{what} config (TOML; its keys are listed below)")
+    add_config_set(p, set_examples)
+    return p
+
+
 # ---------------------------------------------------------------------------------------------- priority, CPUs
 
 def add_nice(parser: argparse.ArgumentParser) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from clients.options import LazyText, add_config_set
+from clients.options import add_config_command
 
 DESCRIPTION = """\
 Runs the neighbour Sigma_2, a constant-power load following its profile: with PREFIX the config's prefix (default \
@@ -16,21 +16,11 @@ time; realtime pacing publishes at rate_hz, stamped with the plant's newest time
 SIGINT/SIGTERM and prints a JSON line: messages sent, its log, CPU use."""
 
 
-def epilog() -> str:
-    """The keys of LOAD.toml, from the config model."""
-    from clients.confighelp import config_epilog
-    from schemas.component import LoadPeerConfig
-
-    return config_epilog(LoadPeerConfig, "LOAD.toml", "load.value=2400")
-
-
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    ld = subparsers.add_parser("load", help="the neighbour load: publishes its interaction variable and forecasts",
-                               description=DESCRIPTION,
-                               epilog=LazyText(epilog))
-    ld.add_argument("--config", required=True, metavar="LOAD.toml",
-                    help="the load's config (TOML; its keys are listed below)")
-    add_config_set(ld, "--set load.value=2400 --set rate_hz=200")
+    ld = add_config_command(
+        subparsers, "load", help="the neighbour load: publishes its interaction variable and forecasts",
+        description=DESCRIPTION, model="LoadPeerConfig", file="LOAD.toml", example="load.value=2400",
+        set_examples="--set load.value=2400 --set rate_hz=200", what="the load's")
     ld.set_defaults(func=run)
     return ld
 

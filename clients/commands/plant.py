@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from clients.options import LazyText, add_config_set
+from clients.options import add_config_command
 
 DESCRIPTION = """\
 Runs the plant model (RLC source branch, constant-power load, sensor) as the controller's hardware: with PREFIX the \
@@ -18,21 +18,11 @@ on. After duration_s it prints the run's metrics, counters and latency (a table,
 trace to out if set; exit 1 if the controller or a peer is not up within 15 s."""
 
 
-def epilog() -> str:
-    """The keys of PLANT.toml, from the config model."""
-    from clients.confighelp import config_epilog
-    from schemas.component import PlantPeerConfig
-
-    return config_epilog(PlantPeerConfig, "PLANT.toml", "sensor.noise_v_V=0.05")
-
-
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    pl = subparsers.add_parser("plant", help="hardware-in-the-loop stand-in: the plant model as a Zenoh peer",
-                               description=DESCRIPTION,
-                               epilog=LazyText(epilog))
-    pl.add_argument("--config", required=True, metavar="PLANT.toml",
-                    help="the plant's config (TOML; its keys are listed below)")
-    add_config_set(pl, "--set duration_s=10 --set sensor.noise_v_V=0.05")
+    pl = add_config_command(
+        subparsers, "plant", help="hardware-in-the-loop stand-in: the plant model as a Zenoh peer",
+        description=DESCRIPTION, model="PlantPeerConfig", file="PLANT.toml", example="sensor.noise_v_V=0.05",
+        set_examples="--set duration_s=10 --set sensor.noise_v_V=0.05", what="the plant's")
     pl.add_argument("--json", action="store_true", help="print the result as one JSON object instead of a table")
     pl.set_defaults(func=run)
     return pl

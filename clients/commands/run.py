@@ -8,7 +8,7 @@ import sys
 import threading
 from pathlib import Path
 
-from clients.options import LazyText, add_config_set
+from clients.options import add_config_command
 
 DESCRIPTION = """\
 Fixed-rate control loop for one component on Zenoh. With PREFIX the config's prefix (default energyctl) and ID its \
@@ -21,20 +21,11 @@ PREFIX/ID/config/set (a JSON {"set": ["controller.K_per_s=800", "lifecycle=inact
 SIGINT/SIGTERM stop it within one period; it prints its loop statistics as JSON."""
 
 
-def epilog() -> str:
-    """The keys of COMPONENT.toml, from the config model."""
-    from clients.confighelp import config_epilog
-    from schemas.component import ComponentConfig
-
-    return config_epilog(ComponentConfig, "COMPONENT.toml", "loop.rate_hz=2000")
-
-
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    r = subparsers.add_parser("run", help="the controller daemon for one component (Zenoh)", description=DESCRIPTION,
-                              epilog=LazyText(epilog))
-    r.add_argument("--config", required=True, metavar="COMPONENT.toml",
-                   help="the component's config (TOML; its keys are listed below)")
-    add_config_set(r, "--set controller.K_per_s=800 --set loop.rate_hz=2000")
+    r = add_config_command(
+        subparsers, "run", help="the controller daemon for one component (Zenoh)",
+        description=DESCRIPTION, model="ComponentConfig", file="COMPONENT.toml", example="loop.rate_hz=2000",
+        set_examples="--set controller.K_per_s=800 --set loop.rate_hz=2000", what="the component's")
     r.add_argument("--stats-out", metavar="FILE.json", help="write the final status JSON here on exit")
     r.set_defaults(func=run)
     return r
