@@ -92,6 +92,13 @@ def add_config_command(subparsers, name: str, *, help: str, description: str, mo
     return p
 
 
+def add_core(parser: argparse.ArgumentParser) -> None:
+    """--core: which implementation of the control core (and the plant's integrator) runs."""
+    parser.add_argument("--core", choices=("auto", "c", "python"), default="auto",
+                        help="the core's implementation: c (the compiled twin), python (the reference, about 30x "
+                             "slower, the same bits), auto (c if it was built at install; the default)")
+
+
 # ---------------------------------------------------------------------------------------------- priority, CPUs
 
 def add_nice(parser: argparse.ArgumentParser) -> None:

@@ -144,9 +144,10 @@ def collect(parts: list, use_index: bool = True) -> Ticks:
 
 
 def replay(path: str | Path | list, overrides: list[str] | None = None, controller: str | None = None,
-           out: str | None = None, progress: bool = True, use_index: bool = True) -> dict:
+           out: str | None = None, progress: bool = True, use_index: bool = True, impl: str = "auto") -> dict:
     """Replay one log, or the parts of a rotated log in order (one core across all of them). use_index=False
-    reads the JSON channels even where a tick index exists (the messages Foxglove shows)."""
+    reads the JSON channels even where a tick index exists (the messages Foxglove shows). impl: the core's
+    implementation (service.core.make_core)."""
     t0 = time.perf_counter()
     parts = [path] if isinstance(path, str | Path) else list(path)
     tk = collect(parts, use_index)
@@ -158,7 +159,7 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     core_meta = tk.core
     ctl = _controller(core_meta["controller"], ovs)
     model = scenario_from_dict({"model": core_meta["model"]}).model
-    core = make_core(ctl, model, core_meta["period_s"], core_meta["delay_samples"])
+    core = make_core(ctl, model, core_meta["period_s"], core_meta["delay_samples"], impl)
     n = len(tk.keys)
     du = np.zeros(n)
     du_next = np.zeros(n)

@@ -7,6 +7,7 @@ import json
 import sys
 
 from clients.commands.common import CONTROLLERS
+from clients.options import add_core
 from schemas.scenario import ScenarioError
 
 
@@ -24,6 +25,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     rp.add_argument("--no-index", action="store_true",
                     help="read the JSON channels (what Foxglove shows) even where the log has a tick index")
     rp.add_argument("--json", action="store_true")
+    add_core(rp)
     rp.set_defaults(func=run)
     return rp
 
@@ -35,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
         raise ScenarioError("replay: a what-if (--set/--controller) needs --out NEW.mcap")
     try:
         res = replay(args.log, args.set, args.controller, args.out, progress=not args.json,
-                     use_index=not args.no_index)
+                     use_index=not args.no_index, impl=args.core)
     except (ReplayError, OSError) as e:
         print(f"energyctl replay: {e}", file=sys.stderr)
         return 2

@@ -7,7 +7,7 @@ import json
 import time
 
 from clients.commands.common import CONTROLLERS, load
-from clients.options import add_scenario_set
+from clients.options import add_core, add_scenario_set
 from clients.table import metrics_table
 
 
@@ -27,6 +27,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     s.add_argument("--controller", choices=CONTROLLERS, help="override controller.kind")
     s.add_argument("--out", metavar="FILE.mcap", help="write measurements, commands, estimates to MCAP")
     s.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    add_core(s)
     s.set_defaults(func=run)
     return s
 
@@ -44,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     scn = load(args.scenario, overrides(args))
     t0 = time.perf_counter()
-    res = simulate(scn)
+    res = simulate(scn, impl=args.core)
     wall = time.perf_counter() - t0
     if args.out:
         from service.logio.mcapfile import write_sim_mcap

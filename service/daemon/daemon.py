@@ -54,7 +54,7 @@ class Daemon(DaemonQueries):
     def __init__(self, cfg: ComponentConfig):
         self.cfg = cfg
         self.period_s = 1.0 / cfg.loop.rate_hz
-        self.core = make_core(cfg.controller, cfg.model, self.period_s, cfg.delay_samples)
+        self.core = make_core(cfg.controller, cfg.model, self.period_s, cfg.delay_samples, cfg.core)
         self.stats = LoopStats(cfg.loop.stats_window)
         self.state = "configured"
         self.log_error = ""  # the recorder could not even start
