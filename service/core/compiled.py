@@ -1,7 +1,7 @@
 """The compiled core: ``service/core/kernel.c`` behind the same interface as ``core.ControlCore``.
 
 The C kernel repeats the Python step operation for operation (see its header), so its du/dt, estimates and
-integrals are bit-identical to the reference (tests/test_kernel.py). It keeps its outputs in one buffer of
+integrals are bit-identical to the reference (tests/core/test_kernel.py). It keeps its outputs in one buffer of
 doubles; the views below read them on demand, so a step costs one call, not twenty attribute writes.
 ``run_batch`` steps a whole replay segment inside C.
 """

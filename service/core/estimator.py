@@ -5,7 +5,7 @@ each channel and evaluated at the newest sample (a recursive, irregular-spacing 
 Savitzky-Golay end-point differentiator). The weight of a sample of age a (s) is exp(-a/tau), so
 sample spacing may vary: the weights follow time, not sample count. O(1) work per sample.
 
-Properties (dense-sampling limit, f_s * tau >> 1; verified in tests/test_estimator.py):
+Properties (dense-sampling limit, f_s * tau >> 1; verified in tests/core/test_estimator.py):
 
 * lag: for a signal with constant second derivative the slope estimate equals the true derivative
   2*tau seconds ago (derivative lag = 2 tau); a ramp's slope is exact, its value estimate unbiased;
@@ -133,7 +133,7 @@ class EnergyEstimator:
     (``est.y_z_balance``) uses only measured p and P_l, not R. The outgoing rates the component
     reports and integrates (z_out, trapezoidal over the actual sample spacing) are the port forms
     P^{r,out} = -v i_2 and Qdot^{r,out} = Qdot_l + 2 (i dv/dt - v di/dt): equal to the definition
-    under the circuit equations (tests/test_energy.py), but free of the derivative filter's lag on p.
+    under the circuit equations (tests/core/test_energy.py), but free of the derivative filter's lag on p.
     ``est.P_r_out`` / ``est.Qdot_r_out`` keep the definition-based values for diagnostics.
     """
 

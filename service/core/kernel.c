@@ -2,7 +2,7 @@
  *
  * Same operations in the same order as the Python reference, IEEE double, no fused multiply-add
  * (built with -ffp-contract=off), libm's exp and sqrt (the ones Python's math module calls): the
- * results are bit-identical to the Python core, which tests/test_kernel.py checks for every
+ * results are bit-identical to the Python core, which tests/core/test_kernel.py checks for every
  * controller kind, both mappings and delays 0..3. The Python module stays the specification; this
  * file is only its fast path. No clocks, no I/O, no globals: all state lives in the Kernel object.
  *

@@ -1,7 +1,7 @@
 #include "kernel.h"
 
 /* TickWriter: what service/daemon/daemon.py's _tick does with a stepped sample once its checks passed and P^{r,in} is
- * formed (its Python lines for the Python core are the reference; tests/test_tickwriter.py checks the bytes are the
+ * formed (its Python lines for the Python core are the reference; tests/daemon/test_tickwriter.py checks the bytes are the
  * same): the kernel's step, the command payload (schemas/codec.py CMD), the loop-delay history entry (seq, measured
  * u, du/dt), and the recorder's grouped slot of meas, z_in and cmd (service/logio/ring.py RingRecorder.offer_group,
  * group 0), in one call. The layouts are checked against the codecs' struct formats at construction. */

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import SCENARIOS
+from conftest import DATA, SCENARIOS
 from mcap.reader import make_reader
 
 from clients.cli import main
@@ -312,7 +312,7 @@ def test_realtime_stacks_run_all_three_peers_at_one_raised_priority():
 
 def test_realtime_stacks_leave_late_detection_to_the_scenario():
     """configs_from_scenario: realtime and lockstep stacks take late_detect_V from the scenario (default 0, off:
-    tests/test_control.py shows it turning late commands into divergence); a value the scenario sets is kept."""
+    tests/core/test_control.py shows it turning late commands into divergence); a value the scenario sets is kept."""
     from clients.live import configs_from_scenario
     from schemas.scenario import load_scenario
 
@@ -481,7 +481,6 @@ def test_core_option_picks_the_implementation_and_the_bits_do_not_change(capsys)
     replays identical under either."""
     import importlib.util
     import json
-    from pathlib import Path
 
     if not importlib.util.find_spec("service._kernel"):
         pytest.skip("compiled core not built")
@@ -491,7 +490,7 @@ def test_core_option_picks_the_implementation_and_the_bits_do_not_change(capsys)
                      "--core", impl]) == 0
         out[impl] = {k: v for k, v in json.loads(capsys.readouterr().out).items() if k != "wall_s"}
     assert out["python"] == out["c"]
-    log = Path(__file__).parent / "data" / "source-v0.1.0-ea805d8.mcap"
+    log = DATA / "source-v0.1.0-ea805d8.mcap"
     for impl in ("python", "c"):
         assert main(["replay", str(log), "--json", "--core", impl]) == 0
         res = json.loads(capsys.readouterr().out)

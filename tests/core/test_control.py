@@ -316,7 +316,7 @@ def _late_burst_run(late_detect_V: float, observer_gain: float = 0.0) -> tuple[f
     from service.plant.rlc import RLCPlant, Sensor, load_current
     from service.sim import substeps
 
-    scn = load_scenario(Path(__file__).parents[1] / "clients" / "embedded" / "demo.toml",
+    scn = load_scenario(Path(__file__).parents[2] / "clients" / "embedded" / "demo.toml",
                         ["timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5", "controller.K_per_s=1500.0",
                          "controller.limits.du_dt_max_V_per_s=20000.0", f"controller.late_detect_V={late_detect_V}",
                          f"controller.observer_gain={observer_gain}"])

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from conftest import SCENARIOS
+from conftest import DATA, SCENARIOS
 
 from clients.cli import main
 from schemas.scenario import load_scenario
@@ -302,6 +300,6 @@ def test_a_daemon_log_with_the_observer_replays_bit_for_bit_and_without_it_does_
 def test_a_log_recorded_by_the_previous_release_replays_identical():
     """tests/data holds a 0.05 s lockstep demo log written by release 0.1.0 (commit ea805d8), before the code moved
     into its layers: today's core must reproduce every one of its commands bit for bit."""
-    log = Path(__file__).parent / "data" / "source-v0.1.0-ea805d8.mcap"
+    log = DATA / "source-v0.1.0-ea805d8.mcap"
     r = replay(log, progress=False)
     assert r["identical"] and r["compared"] == 500 and r["first_divergence"] is None, r

@@ -29,7 +29,7 @@ from schemas.replies import (
     StatusReply,
 )
 
-JSON_DIR = Path(__file__).resolve().parent.parent / "schemas" / "json"
+JSON_DIR = Path(__file__).resolve().parents[2] / "schemas" / "json"
 HINT = "stale: run  energyctl schema --out schemas/json  (schemas.generate.write_schemas)"
 
 
