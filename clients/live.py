@@ -92,7 +92,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
     if not lockstep:
         comp["nice"] = plant["nice"] = REALTIME_NICE if nice is None else nice
         # after a stall, answer the queued samples whose commands can still act (up to the schedule's length) in
-        # order, not only the newest: with catch_up 1 the others were lost, most of the controller's misses (README)
+        # order, not only the newest: with catch_up 1 the others were lost, most of the controller's misses
+        # (docs/decisions)
         comp["loop"].setdefault("catch_up", max(1, comp["delay_samples"]))
         # until the load's first message arrives (it follows the plant's clock, so a few ms after the first
         # sample) and whenever it goes quiet: regulate to the load power measured at the port, not hold du/dt = 0
@@ -100,21 +101,22 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
         comp["local_reference_W"] = "measured"
         # at most REALTIME_STEP_V of source-voltage change per period, as the paper scenario's 2e5 V/s is at 10 kHz:
         # at 1 kHz that slew limit allowed 200 V per period, and one late command during the start-up transient
-        # was answered with +-50 kV/s and diverged; 20 V per period regulates as before offline (README)
+        # was answered with +-50 kV/s and diverged; 20 V per period regulates as before offline (docs/decisions)
         lim = comp["controller"]["limits"]
         lim["du_dt_max_V_per_s"] = min(lim["du_dt_max_V_per_s"], REALTIME_STEP_V * rate)
         # the load power for the prediction as the load announces it (200 Hz, carried to the sample's time), not
         # v i_load measured: that current's noise was most of the commands' noise, and made every late or lost
-        # command cost a few volts over an 8 ms schedule (README)
+        # command cost a few volts over an 8 ms schedule (docs/decisions)
         if "load_power" not in scn.controller.model_fields_set:
             comp["controller"]["load_power"] = "reference"
         # and regulate the stored energy at K_E (default 100/s) instead of the paper's map, whose v converges with
-        # C v^2 / P (about 36 ms): a 10 ms stall in the start-up transient left v 5 % low at 50 ms, 1.3 % so (README)
+        # C v^2 / P (about 36 ms): a 10 ms stall in the start-up transient left v 5 % low at 50 ms, 1.3 % so
+        # (docs/decisions)
         if "regulation" not in scn.controller.model_fields_set:
             comp["controller"]["regulation"] = "energy"
         # no late-command detection (late_detect_V stays as the scenario says, default 0 = off): with plans and the
         # observer it did harm offline under every pattern of late and lost commands tried, up to divergence, and in
-        # 28 alternated realtime pairs it made no difference (README, "Late-command detection")
+        # 28 alternated realtime pairs it made no difference (docs/decisions, late-command detection)
     load = {"id": "load", "zenoh": zc, "load": scn.load.model_dump(), "plant_id": "source",
             "pacing": "lockstep" if lockstep else "realtime", "rate_hz": 200.0,
             "window_s": scn.feasibility.window_s, "forecast_margin": scn.feasibility.forecast_margin,
@@ -123,7 +125,7 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
         load["log_dir"] = str(Path(out).parent)
     if not lockstep:
         # the load too: at 3 kHz, at nice 0 under the other two, its 200 Hz messages came in bursts after silences
-        # of up to 56 ms, and the reference carried from its last one drifted 440 W off (README)
+        # of up to 56 ms, and the reference carried from its last one drifted 440 W off (docs/decisions)
         load["nice"] = comp["nice"]
     for role, d in (("controller", comp), ("plant", plant), ("load", load)):
         if cpus and role in cpus:

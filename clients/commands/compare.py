@@ -12,12 +12,16 @@ from clients.table import metrics_table
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    c = subparsers.add_parser("compare", help="run scenarios under several controllers, one table")
-    c.add_argument("scenarios", nargs="+", metavar="SCENARIO")
+    c = subparsers.add_parser(
+        "compare", help="run scenarios under several controllers, one table",
+        description="Runs every scenario under every controller in --controllers offline (as energyctl sim does, "
+                    "in parallel processes) and prints one metrics table, a row per scenario and controller "
+                    "(--json: a JSON list, one object per row). The metrics are those of energyctl sim --help.")
+    c.add_argument("scenarios", nargs="+", metavar="SCENARIO", help="scenario TOML files (see scenarios/)")
     c.add_argument("--controllers", default="fblc,smc,lqr,bm", help="comma list (default: %(default)s)")
     add_scenario_set(c)
     c.add_argument("--jobs", type=int, default=None, help="processes (default: all cores)")
-    c.add_argument("--json", action="store_true")
+    c.add_argument("--json", action="store_true", help="a JSON list of rows instead of the table")
     c.set_defaults(func=run)
     return c
 

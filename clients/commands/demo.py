@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         c = res["counters"]
         print(f"the plant ran {c.get('stale_periods', 0)} periods with neither a command nor a plan and sent "
               f"{c.get('plant_late_samples', 0)} of {c.get('samples', 0)} samples late: the machine did not keep up "
-              "(stalls, or too little CPU for this rate with three recorders), not the control law (README). "
+              "(stalls, or too little CPU for this rate with three recorders), not the control law (docs/limits.md). "
               "`energyctl demo --lockstep` is the deterministic variant.")
     return 0 if regulated else 1
 

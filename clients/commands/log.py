@@ -13,10 +13,15 @@ from schemas.scenario import ScenarioError
 def add_parser(subparsers) -> argparse.ArgumentParser:
     lg = subparsers.add_parser("log", help="'info LOG.mcap': channels, counts, duration, drops, config; "
                                            "'recover BROKEN.mcap FIXED.mcap': rewrite a cut-off log with a summary")
-    lg.add_argument("action", choices=["info", "recover"])
-    lg.add_argument("log", metavar="LOG.mcap")
-    lg.add_argument("fixed", nargs="?", metavar="FIXED.mcap")
-    lg.add_argument("--json", action="store_true")
+    lg.description = ("'info' prints what a log holds: complete or truncated (and where), messages and bytes per "
+                      "channel, duration, the recorder's drops, the config it ran with, and the loop delay measured "
+                      "from its commands. 'recover' reads a log cut off by a killed writer record by record up to "
+                      "its last complete chunk and writes every readable record into FIXED.mcap, complete and "
+                      "indexed (the tick index included, so it replays fast). Both read any MCAP energyctl writes.")
+    lg.add_argument("action", choices=["info", "recover"], help="info: describe LOG; recover: rewrite LOG whole")
+    lg.add_argument("log", metavar="LOG.mcap", help="the log to read")
+    lg.add_argument("fixed", nargs="?", metavar="FIXED.mcap", help="with recover: the file to write")
+    lg.add_argument("--json", action="store_true", help="print the result as JSON")
     lg.set_defaults(func=run)
     return lg
 

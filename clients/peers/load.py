@@ -49,7 +49,7 @@ class LoadPeer:
     def subscribe(self, session):
         """(subscriber, queue) for the plant's samples: lockstep, every sample, queued by a callback (one message
         each); realtime, only the newest, in a ring that Zenoh fills without Python, read once per message sent (a
-        callback per sample took a quarter of a CPU at 2-10 kHz for a 200 Hz publisher: README, "The CPU
+        callback per sample took a quarter of a CPU at 2-10 kHz for a 200 Hz publisher: docs/limits.md, "The CPU
         budget"). (None, None) when no plant is named."""
         cfg = self.cfg
         if not cfg.plant_id:

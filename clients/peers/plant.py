@@ -275,7 +275,7 @@ class PlantRig:
         inbox.drain(deadline_ns, arrive)
         # one sleep, not a wait on the queue: that woke this thread for every command (5000 a second at 5 kHz,
         # each taking the GIL from the callback thread), and the plant sent 45-67 % of its samples late at
-        # 5 kHz against 26-53 % so (README)
+        # 5 kHz against 26-53 % so (docs/decisions)
         left = deadline_ns - now_ns()
         if left > spin_ns:
             time.sleep((left - spin_ns) * 1e-9)
