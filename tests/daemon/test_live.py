@@ -137,6 +137,20 @@ def test_status_config_and_neighbour_freshness(daemon_and_load):
     assert wait_until(lambda: not query(zc(ep), "energyctl", "source", "status")["neighbours"]["load"]["fresh"], 5.0)
 
 
+def test_a_wildcard_get_learns_which_queryable_answered(daemon_and_load):
+    """Replies are made on the queryable's own key: a get on energyctl/** is answered by .../status and
+    .../config (and refused by .../config/set, which needs a body), each reply keyed by its leaf."""
+    from service.daemon.bus import open_session
+
+    _d, ep, _stop = daemon_and_load
+    with open_session(zc(ep)) as s:
+        replies = list(s.get("energyctl/**", timeout=5.0))
+    ok = {str(r.ok.key_expr): json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None}
+    assert set(ok) == {"energyctl/source/status", "energyctl/source/config"}
+    assert ok["energyctl/source/status"]["id"] == "source" and "controller" in ok["energyctl/source/config"]
+    assert any(r.err is not None for r in replies)  # config/set without {"set": [...]}
+
+
 def test_the_daemon_forecasts_each_announced_window_and_checks_it_ahead(daemon_and_load):
     """The load announces each window's box half a window ahead; the daemon forecasts its own Z^{r,out} for it in
     its worker process, whatever the loop's state (here it holds: no plant). Publishing: the lockstep test."""
