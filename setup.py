@@ -1,7 +1,7 @@
 """Only for the optional compiled parts; everything else is in pyproject.toml.
 
 service._kernel, one extension from one source per layer: the core's twin (service/core/kernel.c), the plant's
-integrator (service/plant/rk4.c) and the daemon's tick writer (service/daemon/tickwriter.c), sharing
+integrator (service/plant/rk4.c), a network's (service/plant/network.c) and the daemon's tick writer (service/daemon/tickwriter.c), sharing
 service/core/kernel.h. service.logio._mcapscan: the scanner replay uses on our own logs.
 
 optional=True: without a C compiler the install still succeeds and the pure-Python code is used.
@@ -11,7 +11,8 @@ optional=True: without a C compiler the install still succeeds and the pure-Pyth
 from setuptools import Extension, setup
 
 FLAGS = ["-O2", "-ffp-contract=off", "-fno-fast-math", "-std=c11"]
-KERNEL = ["service/kernel_module.c", "service/core/kernel.c", "service/plant/rk4.c", "service/daemon/tickwriter.c"]
+KERNEL = ["service/kernel_module.c", "service/core/kernel.c", "service/plant/rk4.c", "service/plant/network.c",
+          "service/daemon/tickwriter.c"]
 
 setup(ext_modules=[Extension("service._kernel", KERNEL, include_dirs=["service/core"],
                              depends=["service/core/kernel.h"], optional=True, extra_compile_args=FLAGS),

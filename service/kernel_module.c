@@ -1,9 +1,11 @@
 /* The extension service._kernel: registers the compiled core (core/kernel.c), the daemon's tick writer
- * (daemon/tickwriter.c) and the plant's integrator (plant/rk4.c). */
+ * (daemon/tickwriter.c), the plant's integrator (plant/rk4.c) and the network's (plant/network.c). */
 #include "kernel.h"
 
 static PyMethodDef module_methods[] = {
     {"plant_steps", (PyCFunction)(void (*)(void))plant_steps, METH_FASTCALL, "RLCPlant.advance's RK4 loop"},
+    {"network_steps", (PyCFunction)(void (*)(void))network_steps, METH_FASTCALL,
+     "service/plant/network.py steps(): RK4 steps of a DC network in node/branch form"},
     {NULL, NULL, 0, NULL},
 };
 

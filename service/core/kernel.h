@@ -1,6 +1,7 @@
 /* Shared declarations of the compiled twin (the extension service._kernel), one source per layer:
  *   service/core/kernel.c        the control core's step (ControlCore.step and its estimator): the Kernel type
  *   service/plant/rk4.c          the plant's RK4 integrator (RLCPlant.advance)
+ *   service/plant/network.c      a DC network's RK4 integrator (service/plant/network.py steps)
  *   service/daemon/tickwriter.c  the daemon's stepped tick after its checks (TickWriter)
  *   service/kernel_module.c      the module that registers them
  * Built with -ffp-contract=off so that every result is bit-identical to the Python reference.
@@ -64,6 +65,8 @@ PyObject *port_rates(const double *o, double *qdot);
 int float_args(PyObject *const *args, Py_ssize_t nargs, int n, double *x, const char *usage);
 /* plant_steps(R, L, C, v_min, u_min, u_max, clip, r, h, n_sub, Pa, dP, ma, dm, i, v, u) (plant/rk4.c). */
 PyObject *plant_steps(PyObject *mod, PyObject *const *args, Py_ssize_t nargs);
+/* network_steps(h, n_sub, src, r, lines, node_C, loads, i_s, u_s, i_l, v_n) (plant/network.c). */
+PyObject *network_steps(PyObject *mod, PyObject *const *args, Py_ssize_t nargs);
 
 extern PyTypeObject KernelType;     /* core/kernel.c */
 extern PyTypeObject TickWriterType; /* daemon/tickwriter.c */

@@ -1,0 +1,266 @@
+"""Network scenarios: several controllable sources on a DC network, each with its own controller, lines and loads
+as their neighbours, and the interconnection layer that shares the load between the sources.
+
+Elements are tables keyed by name (``[sources.S1]``, ``[lines.L1]``, ``[buses.B1]``, ``[loads.P1]``), so that an
+override names them: ``--set sources.S1.controller.K_per_s=800``. Every name is unique across all kinds; a line
+joins two nodes, each a bus or a source's terminal. A source is the paper's Sigma_1 (a controllable voltage u
+behind R, L into its terminal capacitor C); a line is R, L between two nodes; a bus is a capacitor; a load draws
+constant power (resistive below ``v_min_V``) or is a resistor.
+
+Sign conventions (docs/control.md): a line's current is positive from its ``a`` end to its ``b`` end; a source's
+terminal current ``i_out`` is what leaves its terminal into its lines, and its incoming interaction variable
+P^{r,in} is the power its lines draw at its terminal, oriented out of the source.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from collections import deque
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, ValidationError, field_validator, model_validator
+
+from schemas.scenario import (
+    CircuitParams,
+    ControllerConfig,
+    NonNeg,
+    Pos,
+    ProfileConfig,
+    ScenarioError,
+    SensorConfig,
+    SourceLimits,
+    Strict,
+    apply_overrides,
+    format_validation_error,
+)
+
+NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
+
+
+class ModelError(Strict):
+    """The controller's model of its own source, relative to the true circuit: model = true x (1 + error)."""
+
+    R: Annotated[float, Field(gt=-1, lt=10)] = Field(default=0.0, description="relative error of R (-0.1: 10 % low)")
+    L: Annotated[float, Field(gt=-1, lt=10)] = Field(default=0.0, description="relative error of L")
+    C: Annotated[float, Field(gt=-1, lt=10)] = Field(default=0.0, description="relative error of C")
+
+
+class SourceConfig(CircuitParams):
+    """One controllable source: its true circuit (R_ohm, L_H, C_F), its actuator's limits, its controller."""
+
+    limits: SourceLimits = SourceLimits()
+    model_error: ModelError = ModelError()
+    controller: ControllerConfig = ControllerConfig()
+    share: Pos = Field(default=1.0, description="its share of the network's load under the interconnection layer "
+                                                "(relative to the other sources' shares)")
+    connected: bool = Field(default=True, description="its line breakers start closed; false: it starts idle, "
+                                                      "disconnected, until a connect event")
+    v0_V: Pos | None = Field(default=None, description="initial terminal voltage, V; default: the network's "
+                                                       "nominal_v_V")
+
+    def model_params(self) -> CircuitParams:
+        """The controller's (wrong) model of this source."""
+        e = self.model_error
+        return CircuitParams(R_ohm=self.R_ohm * (1 + e.R), L_H=self.L_H * (1 + e.L), C_F=self.C_F * (1 + e.C))
+
+
+class BusConfig(Strict):
+    """A junction of lines and loads, with its capacitance."""
+
+    C_F: Pos = Field(description="bus capacitance, F (a bus without capacitance is refused: the node needs a "
+                                 "state)")
+    v0_V: Pos | None = Field(default=None, description="initial voltage, V; default: the network's nominal_v_V")
+
+
+class LineConfig(Strict):
+    """A series R-L line between two nodes (a bus or a source's terminal), behind a breaker."""
+
+    a: str = Field(description="the node at its a end (a bus or a source); current is positive from a to b")
+    b: str = Field(description="the node at its b end (a bus or a source)")
+    R_ohm: NonNeg = Field(description="series resistance, Ω")
+    L_H: Pos = Field(description="series inductance, H")
+    closed: bool = Field(default=True, description="the breaker's initial state (a source's connected flag opens "
+                                                   "its lines)")
+
+    @model_validator(mode="after")
+    def _ends(self) -> LineConfig:
+        if self.a == self.b:
+            raise ValueError(f"a line must join two different nodes (a = b = {self.a!r})")
+        return self
+
+
+class LoadAtBus(ProfileConfig):
+    """A load at a bus: constant power following its profile (W), or a resistor."""
+
+    bus: str = Field(description="the bus it draws from")
+    type: Literal["cpl", "resistive"] = Field(default="cpl", description="cpl: constant power P(t) from the "
+                                                                          "profile; resistive: R_ohm")
+    value: float = Field(default=1200.0, allow_inf_nan=False, description="the load power, or the base of steps "
+                                                                           "and sines, W")
+    R_ohm: Pos | None = Field(default=None, description="resistive: its resistance, Ω")
+    v_min_V: Pos = Field(default=5.0, description="cpl: below this voltage it draws as a resistor, V")
+
+    @model_validator(mode="after")
+    def _resistor(self) -> LoadAtBus:
+        if self.type == "resistive" and self.R_ohm is None:
+            raise ValueError("a resistive load needs R_ohm")
+        return self
+
+
+class EventConfig(Strict):
+    """A timed event: a breaker trips or closes, or a source asks to connect (the layer decides)."""
+
+    t_s: NonNeg = Field(description="when, s")
+    kind: Literal["trip", "close", "connect"] = Field(
+        description="trip: open the breakers (of a line, or of every line at a source); close: close them; "
+                    "connect: the source asks the interconnection layer to connect it (closed only if feasible)")
+    target: str = Field(description="a line's name, or a source's name (all its lines)")
+
+
+class LinkConfig(Strict):
+    """How the interaction variables reach the controllers: delay and loss (per receiving source, or all)."""
+
+    delay_s: NonNeg = Field(default=0.0, description="extra delay of each interaction message, s")
+    loss: Annotated[float, Field(ge=0, lt=1)] = Field(default=0.0, description="probability a message is lost, "
+                                                                               "seeded")
+    silent_from_s: NonNeg | None = Field(default=None, description="from this time on no message arrives, s")
+
+
+class LayerConfig(Strict):
+    """The interconnection layer: shares the incoming interaction among the sources and restores the bus voltage."""
+
+    mode: Literal["none", "live-sum"] = Field(
+        default="live-sum", description="none: each source follows the power its own lines draw; live-sum: each "
+                                        "sample, source s follows share_s x the sum of all connected sources' line "
+                                        "powers")
+    window_s: Pos = Field(default=0.05, description="the layer's window: v_ref moves and feasibility is checked "
+                                                    "once per window, s")
+    v_ref_gain: Annotated[float, Field(ge=0, le=1)] = Field(
+        default=0.5, description="per window, every source's v_ref moves by this x (nominal - the mean bus "
+                                 "voltage over the window); 0: off")
+    v_ref_max_offset_V: NonNeg = Field(default=8.0, description="bound of that v_ref offset, V")
+    idle_power_W: NonNeg = Field(default=30.0, description="below this |power| a source's lines count as idle "
+                                                           "(excluded from the live sum; its controller idles)")
+
+
+class NetworkTiming(Strict):
+    control_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = Field(
+        default=10_000.0, description="sampling and control rate of every source, Hz")
+    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = Field(default=1e-5, description="integration step, s")
+    delay_samples: Annotated[int, Field(ge=0, le=200)] = Field(
+        default=2, description="loop delay of every source: the command answering sample k acts from k + this")
+    duration_s: Annotated[float, Field(gt=0, le=3600)] = Field(default=1.0, description="simulated time, s")
+
+
+class NetworkScenario(Strict):
+    """A DC network of controllable sources, lines, buses and loads (see the module docstring)."""
+
+    kind: Literal["network"] = Field(description="'network': tells a network scenario from a one-source one")
+    name: str = Field(default="network", description="name of the scenario")
+    description: str = Field(default="", description="free text")
+    seed: int = Field(default=1, description="seed of the sensor noise and the interaction-message losses")
+    nominal_v_V: Pos = Field(default=80.0, description="the network's nominal voltage, V")
+    timing: NetworkTiming = NetworkTiming()
+    sensor: SensorConfig = SensorConfig()
+    sources: dict[str, SourceConfig] = Field(description="the controllable sources, by name")
+    buses: dict[str, BusConfig] = Field(default={}, description="the buses, by name")
+    lines: dict[str, LineConfig] = Field(default={}, description="the lines, by name")
+    loads: dict[str, LoadAtBus] = Field(default={}, description="the loads, by name")
+    events: list[EventConfig] = Field(default=[], description="timed breaker and connect events")
+    layer: LayerConfig = LayerConfig()
+    links: dict[str, LinkConfig] = Field(default={}, description="interaction-message delay and loss, by receiving "
+                                                                 "source name, or '*' for all")
+    base_dir: str = Field(default=".", description="directory for relative csv paths (set by the loader)")
+
+    @field_validator("sources")
+    @classmethod
+    def _some_source(cls, v: dict) -> dict:
+        if not v:
+            raise ValueError("a network needs at least one source")
+        return v
+
+    @model_validator(mode="after")
+    def _topology(self) -> NetworkScenario:
+        errors = topology_errors(self)
+        if errors:
+            raise ValueError("; ".join(errors))
+        return self
+
+    def nodes(self) -> list[str]:
+        """Every node: the sources' terminals, then the buses, in file order."""
+        return [*self.sources, *self.buses]
+
+
+def topology_errors(n: NetworkScenario) -> list[str]:
+    """What makes the network unusable: bad or repeated names, references to nothing, a part not connected."""
+    out = []
+    kinds = {"source": n.sources, "bus": n.buses, "line": n.lines, "load": n.loads}
+    seen: dict[str, str] = {}
+    for kind, items in kinds.items():
+        for name in items:
+            if not NAME.match(name):
+                out.append(f"{kind} name {name!r}: letters, digits, '_' and '-', starting with a letter")
+            if name in seen:
+                out.append(f"name {name!r} is both a {seen[name]} and a {kind}")
+            seen.setdefault(name, kind)
+    nodes = set(n.sources) | set(n.buses)
+    for name, ln in n.lines.items():
+        for end in (ln.a, ln.b):
+            if end not in nodes:
+                out.append(f"lines.{name}: {end!r} is not a bus or a source")
+    for name, ld in n.loads.items():
+        if ld.bus not in n.buses:
+            out.append(f"loads.{name}.bus: {ld.bus!r} is not a bus")
+    for k, ev in enumerate(n.events):
+        if ev.kind == "connect" and ev.target not in n.sources:
+            out.append(f"events.{k}.target: {ev.target!r} is not a source (connect names a source)")
+        elif ev.target not in n.lines and ev.target not in n.sources:
+            out.append(f"events.{k}.target: {ev.target!r} is not a line or a source")
+    for name in n.links:
+        if name != "*" and name not in n.sources:
+            out.append(f"links.{name}: not a source (or '*')")
+    if out:
+        return out
+    # every node reachable from the first source over the lines (whatever their breakers' state)
+    adj: dict[str, set[str]] = {v: set() for v in nodes}
+    for ln in n.lines.values():
+        adj[ln.a].add(ln.b)
+        adj[ln.b].add(ln.a)
+    start = next(iter(n.sources))
+    reached, todo = {start}, deque([start])
+    while todo:
+        for w in adj[todo.popleft()] - reached:
+            reached.add(w)
+            todo.append(w)
+    missing = [v for v in n.nodes() if v not in reached]
+    if missing:
+        out.append(f"not connected to {start}: {', '.join(missing)}")
+    return out
+
+
+def network_from_dict(data: dict, overrides: list[str] | None = None, source: str = "") -> NetworkScenario:
+    data = apply_overrides(data, overrides or [])
+    try:
+        return NetworkScenario.model_validate(data)
+    except ValidationError as err:
+        raise ScenarioError(format_validation_error(err, source, "network scenario")) from None
+
+
+def is_network(data: dict) -> bool:
+    """A scenario file's table is a network scenario (kind = "network")."""
+    return data.get("kind") == "network"
+
+
+def load_network(path: str | Path, overrides: list[str] | None = None) -> NetworkScenario:
+    """Read a TOML network scenario, apply ``dotted.key=value`` overrides, validate."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except OSError as e:
+        raise ScenarioError(f"cannot read scenario {p}: {e.strerror}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ScenarioError(f"scenario {p} is not valid TOML: {e}") from None
+    data.setdefault("base_dir", str(p.parent.resolve()))
+    return network_from_dict(data, overrides, str(p))
