@@ -1,8 +1,9 @@
 """Only for the optional compiled parts; everything else is in pyproject.toml.
 
 service._kernel, one extension from one source per layer: the core's twin (service/core/kernel.c), the plant's
-integrator (service/plant/rk4.c), a network's (service/plant/network.c) and the daemon's tick writer (service/daemon/tickwriter.c), sharing
-service/core/kernel.h. service.logio._mcapscan: the scanner replay uses on our own logs.
+integrator (service/plant/rk4.c), a network's (service/plant/network.c) and the daemon's tick writer
+(service/daemon/tickwriter.c), sharing service/core/kernel.h. service.logio._mcapscan: the scanner replay uses on
+our own logs.
 
 optional=True: without a C compiler the install still succeeds and the pure-Python code is used.
 -ffp-contract=off: no fused multiply-add, so the kernel stays bit-identical to the Python reference.

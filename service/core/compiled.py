@@ -141,8 +141,8 @@ class CompiledCore(CoreBase):
     def applied_rate(self) -> float:
         return self._k.applied_rate()
 
-    def hold(self, seq: int) -> None:
-        self._k.hold(seq)
+    def hold(self, seq: int, du_dt: float = 0.0) -> None:
+        self._k.hold(seq, du_dt)
 
     def step(self, s: Sample, inc: Incoming) -> KernelOutput:
         self._step(s.seq, s.t, s.i, s.v, s.u, s.i_load, inc.P_r_in, inc.P_r_in_dot)

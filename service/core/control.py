@@ -245,8 +245,10 @@ class CoreBase:
             if next_out is not None:
                 next_out[j] = nxt
 
-    def hold(self, seq: int) -> None:
-        """Sample seq was answered with du/dt = 0 and no plan, without a step (inactive, no reference)."""
+    def hold(self, seq: int, du_dt: float = 0.0) -> None:
+        """Sample seq was answered without a step, with du_dt (V/s; 0: hold the source voltage) and no plan
+        (inactive, no reference, or a mode outside the law such as a network source's idle mode): the delay
+        prediction then integrates over what the plant really applies."""
         raise NotImplementedError
 
     def est_record(self) -> tuple:
@@ -319,9 +321,9 @@ class ControlCore(CoreBase):
         j, _, plan = self.pending[(seq - 1) % m]
         return plan if j == seq - 1 else 0.0
 
-    def hold(self, seq: int) -> None:
-        """Sample seq was answered with du/dt = 0 and no plan, without a step (inactive, no reference)."""
-        self.pending[seq % (self.d + 1)] = (seq, 0.0, 0.0)
+    def hold(self, seq: int, du_dt: float = 0.0) -> None:
+        """Sample seq was answered without a step, with du_dt (V/s) and no plan (CoreBase.hold)."""
+        self.pending[seq % (self.d + 1)] = (seq, du_dt, 0.0)
 
     def _observe(self, s: Sample, late: bool, P_load: float) -> tuple[float, float, float]:
         """The state (i A, v V, u V) at sample s for the delay prediction to start from:

@@ -600,12 +600,12 @@ done:
     return res;
 }
 
-static PyObject *Kernel_hold(Kernel *self, PyObject *arg)
+static PyObject *Kernel_hold(Kernel *self, PyObject *args)
 {
-    double seq = PyFloat_AsDouble(arg);
-    if (seq == -1.0 && PyErr_Occurred())
+    double seq, r = 0.0;
+    if (!PyArg_ParseTuple(args, "d|d", &seq, &r))
         return NULL;
-    remember(self, seq, 0.0, 0.0);
+    remember(self, seq, r, 0.0);
     Py_RETURN_NONE;
 }
 
@@ -634,7 +634,7 @@ static PyMethodDef Kernel_methods[] = {
     {"est_record", (PyCFunction)Kernel_est_record, METH_NOARGS, "the estimator record's values (CoreBase.est_record)"},
     {"interaction", (PyCFunction)Kernel_interaction, METH_NOARGS, "the outgoing interaction (CoreBase.interaction)"},
     {"applied_rate", (PyCFunction)Kernel_applied_rate, METH_NOARGS, "du/dt acting now"},
-    {"hold", (PyCFunction)Kernel_hold, METH_O, "sample seq was answered with du/dt = 0, no plan"},
+    {"hold", (PyCFunction)Kernel_hold, METH_VARARGS, "hold(seq, du_dt=0): seq was answered with du_dt, no plan"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -509,3 +509,19 @@ def test_the_metrics_say_when_v_deviated_most_and_how_long_it_was_outside_the_ba
     assert m["hold_max_dev_pct"] == pytest.approx(3.0)
     assert m["hold_max_dev_t_s"] == pytest.approx(0.30, abs=dt)
     assert m["hold_outside_band_s"] == pytest.approx(0.010, abs=1.5 * dt)
+
+
+def test_a_hold_with_a_rate_is_what_the_delay_prediction_integrates():
+    """A sample answered outside the law (core.hold(seq, du_dt)) enters the prediction as that rate: the next
+    step's predicted source voltage moves by du_dt over its period, where a plain hold predicts none."""
+    from service.core import Incoming, Sample
+
+    scn = scenario(timing={"control_rate_hz": 10000.0, "plant_step_s": 1e-5, "duration_s": 0.01, "delay_samples": 1})
+    T = 1e-4
+    u_pred = {}
+    for rate in (0.0, 2000.0):
+        core = make_core(scn.controller, scn.model, T, 1, "python")
+        core.step(Sample(0, 0.0, 15.0, 80.0, 80.2, 15.0), Incoming(-1200.0, 0.0))
+        core.hold(1, rate)
+        u_pred[rate] = core.step(Sample(2, 2 * T, 15.0, 80.0, 80.2, 15.0), Incoming(-1200.0, 0.0)).u_pred
+    assert u_pred[2000.0] - u_pred[0.0] == pytest.approx(2000.0 * T, rel=1e-9)

@@ -215,3 +215,22 @@ def test_compiled_plant_integrator_equals_python(i, v, u, r, Pa, dP, ma, dm, n_s
         return
     got = _kernel.plant_steps(*args)
     assert all(a == b or (math.isnan(a) and math.isnan(b)) for a, b in zip(want, got, strict=True)), (want, got)
+
+
+@pytest.mark.parametrize("delay", [0, 1, 3])
+def test_samples_answered_outside_the_law_same_answer(delay):
+    """hold(seq, du_dt): a sample answered with a rate the law did not compute (a network source's idle mode);
+    both cores predict over it alike, so every later command agrees."""
+    scn, rows = _stream()
+    T = 1.0 / scn.timing.control_rate_hz
+    cores = [ControlCore(scn.controller, scn.model, T, delay), make_core(scn.controller, scn.model, T, delay, "c")]
+    outside = {40: 1500.0, 41: -800.0, 42: 0.0, 150: 2500.0}
+    seen = [[], []]
+    for j, core in enumerate(cores):
+        for k, r in enumerate(rows):
+            if k in outside:
+                core.hold(k, outside[k])
+                continue
+            o = core.step(Sample(*r[:6]), Incoming(r[6], r[7]))
+            seen[j].append((o.du_dt, o.du_dt_next, o.i_pred, o.v_pred, o.u_pred, core.applied_rate()))
+    assert seen[0] == seen[1]
