@@ -32,9 +32,11 @@ class ZenohConfig(Strict):
 
     mode: Literal["peer", "client", "router"] = Field(default="peer", description="Zenoh session mode")
     listen: list[str] = Field(default=[], description="Zenoh endpoints to listen on, e.g. tcp/0.0.0.0:7447; a peer "
-                                                       "given none (and no config_file) listens on tcp/127.0.0.1:0 "
-                                                       "only, so that Zenoh's gossip links this host's peers over "
-                                                       "loopback; give an endpoint to be reachable from other hosts")
+                                                       "given none, no config_file, no multicast scouting and only "
+                                                       "loopback connect endpoints listens on tcp/127.0.0.1:0, so "
+                                                       "that Zenoh's gossip links this host's peers over loopback; "
+                                                       "any other peer given none listens where Zenoh's default "
+                                                       "says (every interface)")
     connect: list[str] = Field(default=[], description="Zenoh endpoints to connect to, e.g. tcp/127.0.0.1:7447")
     config_file: str | None = Field(default=None, description="Zenoh JSON5 config file, used as it is (relative "
                                                               "paths: from the config file's directory)")

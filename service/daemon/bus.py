@@ -32,6 +32,21 @@ TX_QUEUE_BATCHES = 16  # zenoh.tx_queue_batches unset and no config file: Zenoh'
 PEER_DEFAULT_LISTEN = "tcp/127.0.0.1:0"  # a peer given no listen endpoint (and no config file) listens here
 
 
+def local_only(z: ZenohConfig) -> bool:
+    """A peer with no listen endpoint and no config file whose every connect endpoint is on this host (loopback) and
+    that does not scout: it gets PEER_DEFAULT_LISTEN. Any other peer keeps Zenoh's default (every interface), so
+    that peers on other hosts, routed through a router, can still reach it."""
+    if z.mode != "peer" or z.listen or z.config_file or z.multicast_scouting:
+        return False
+    return all(_loopback(e) for e in z.connect)
+
+
+def _loopback(endpoint: str) -> bool:
+    """tcp/127.0.0.1:7447, udp/localhost:7447, tcp/[::1]:7447 ... (protocol/host:port[#...])."""
+    host = endpoint.partition("/")[2].split("#")[0].rpartition(":")[0].strip("[]")
+    return host == "localhost" or host == "::1" or host.startswith("127.")
+
+
 def key(prefix: str, component_id: str, leaf: str) -> str:
     return f"{prefix}/{component_id}/{leaf}"
 
@@ -48,9 +63,9 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
         cfg.insert_json5("mode", json.dumps(z.mode))
     if z.listen:
         cfg.insert_json5("listen/endpoints", json.dumps(z.listen))
-    elif z.mode == "peer" and not z.config_file:
+    elif local_only(z):
         # Zenoh's own default for a peer is every interface ([::]:0), and its gossip then links peers of this host
-        # through a non-loopback address: loopback unless told otherwise
+        # through a non-loopback address; a peer that only ever talks to this host listens on loopback instead
         cfg.insert_json5("listen/endpoints", json.dumps([PEER_DEFAULT_LISTEN]))
     if z.connect:
         cfg.insert_json5("connect/endpoints", json.dumps(z.connect))

@@ -131,7 +131,7 @@ class Daemon(DaemonQueries):
         self._fast = self._tick_writer()
         if c.forecast.enabled and self.neighbours:  # a worker process: started (and imported) before the loop runs
             self.forecaster = ForecastWorker(c.model, self.period_s, self.core.d, c.forecast, c.forecast_window_s,
-                                             on_result=self._forecast_done)
+                                             on_result=self._forecast_done, impl=c.core)
             self.forecaster.start()
         self._threads = [threading.Thread(target=self._serve, name=leaf, daemon=True,
                                           args=(self.queryables[leaf], key(c.prefix, c.id, leaf), fn))

@@ -21,10 +21,12 @@ class ForecastWorker:
     CACHE = 64
 
     def __init__(self, model: CircuitParams, period_s: float, delay_samples: int, cfg, window_s: float,
-                 quantum: float = 0.02, on_result=None):
+                 quantum: float = 0.02, on_result=None, impl: str = "auto"):
+        """impl: the core's implementation the forecast's closed loops run (service.core.make_core)."""
         import threading
 
         self.model, self.period_s, self.delay_samples = model, period_s, delay_samples
+        self.impl = impl
         self.cfg, self.window_s, self.quantum = cfg, window_s, quantum
         self.on_result = on_result
         self.result: tuple[int, OutgoingForecast] | None = None
@@ -105,7 +107,7 @@ class ForecastWorker:
                 try:
                     f = self._pool.submit(forecast_outgoing, ctl, self.model, self.period_s, self.delay_samples, wide,
                                           tau_p, steps=c.load_steps, settle_s=c.settle_s,
-                                          max_ramp_s=self.window_s).result(timeout=60)
+                                          max_ramp_s=self.window_s, impl=self.impl).result(timeout=60)
                 except Exception as e:  # noqa: BLE001 - a broken worker: count, say, start a new one next time
                     self.errors += 1
                     self.last_error = f"{type(e).__name__}: {e}"

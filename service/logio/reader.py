@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
@@ -203,7 +204,9 @@ def _read_general(path: str | Path, data=None) -> LogData:
     out = LogData(core=_core_meta(_read_bytes(path) if data is None else data))
     rows: list[list[float]] = []
     events: list[bytes] = []
-    s = Stream(path)  # records in file order, chunks expanded: works on a file without summary too
+    # records in file order, chunks expanded: works on a file without summary too; a cut-off record ends it, a
+    # corrupt one is raised
+    s = Stream(path, tolerate=(McapError, EOFError, struct.error))
     for rec in s:
         if not isinstance(rec, Message):
             continue
@@ -286,15 +289,18 @@ class Stream:
     Iterate it once; afterwards ``complete`` is True if the footer was read and ``error`` names what ended the
     file early (a killed writer's partial record). ``channels`` maps channel id to Channel as they appear."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, tolerate: tuple[type[BaseException], ...] = (Exception,)):
+        """tolerate: what ends the file early instead of being raised (a cut-off record raises one of McapError,
+        EOFError, struct.error; a corrupt chunk others)."""
         self.path = Path(path)
+        self.tolerate = tolerate
         self.channels: dict[int, Channel] = {}
         self.complete = False
         self.error: str | None = None
 
     def topic(self, rec: Message) -> str:
-        ch = self.channels.get(rec.channel_id)
-        return ch.topic if ch is not None else ""
+        """The topic of a message's channel (KeyError: a channel the file never declared)."""
+        return self.channels[rec.channel_id].topic
 
     def __iter__(self) -> Iterator:
         with open(self.path, "rb") as f:
@@ -304,7 +310,7 @@ class Stream:
                     rec = next(records)
                 except StopIteration:
                     return
-                except Exception as e:  # noqa: BLE001 - a truncated file ends in a partial record
+                except self.tolerate as e:  # a truncated file ends in a partial record
                     self.error = f"{type(e).__name__}: {e}"
                     return
                 if isinstance(rec, Channel):
@@ -316,14 +322,23 @@ class Stream:
 
 def messages(path: str | Path, suffix: str) -> list[dict]:
     """The JSON messages of the channels whose topic ends in ``suffix``, in file order; a file cut off by SIGKILL
-    gives what was complete."""
+    gives what was complete, and so does one whose messages stop being readable (what came before is returned)."""
     s = Stream(path)
-    return [json.loads(r.data) for r in s if isinstance(r, Message) and s.topic(r).endswith(suffix)]
+    out = []
+    try:
+        for r in s:
+            if isinstance(r, Message) and s.topic(r).endswith(suffix):
+                out.append(json.loads(r.data))
+    except (KeyError, ValueError):  # an undeclared channel, a message that is not JSON: stop there
+        pass
+    return out
 
 
 def scan(path: str | Path, keep_messages: bool = False) -> dict:
     """What a log holds: schemas, channels, message counts and bytes per topic, metadata, attachments, the
-    recorder's drop counts, duration, whether it is complete (and the messages themselves if asked)."""
+    recorder's drop counts, duration, whether it is complete (and the messages themselves if asked). A file cut
+    off by SIGKILL, or one whose records stop making sense (a foreign event topic, an undeclared channel), is
+    scanned up to there, and ``error`` says what stopped it."""
     s = Stream(path)
     schemas: dict[int, Schema] = {}
     counts: dict[str, int] = {}
@@ -333,27 +348,29 @@ def scan(path: str | Path, keep_messages: bool = False) -> dict:
     attachments: list[Attachment] = []
     drops: dict = {}
     t_first = t_last = None
-    for rec in s:
-        if isinstance(rec, Schema):
-            schemas[rec.id] = rec
-        elif isinstance(rec, Message):
-            topic = s.topic(rec)
-            counts[topic] = counts.get(topic, 0) + 1
-            nbytes[topic] = nbytes.get(topic, 0) + len(rec.data)
-            t_first = rec.log_time if t_first is None else min(t_first, rec.log_time)
-            t_last = rec.log_time if t_last is None else max(t_last, rec.log_time)
-            if topic.endswith("/events"):
-                ev = json.loads(rec.data)
-                if ev.get("kind") == "recorder_drops":
-                    drops = json.loads(ev["detail"])
-            if keep_messages:
-                kept.append(rec)
-        elif isinstance(rec, Metadata):
-            metadata[rec.name] = dict(rec.metadata)
-        elif isinstance(rec, Attachment):
-            attachments.append(rec)
+    try:
+        for rec in s:
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Message):
+                topic = s.topic(rec)
+                counts[topic] = counts.get(topic, 0) + 1
+                nbytes[topic] = nbytes.get(topic, 0) + len(rec.data)
+                t_first = rec.log_time if t_first is None else min(t_first, rec.log_time)
+                t_last = rec.log_time if t_last is None else max(t_last, rec.log_time)
+                if topic.endswith("/events"):
+                    ev = json.loads(rec.data)
+                    if ev.get("kind") == "recorder_drops":
+                        drops = json.loads(ev["detail"])
+                if keep_messages:
+                    kept.append(rec)
+            elif isinstance(rec, Metadata):
+                metadata[rec.name] = dict(rec.metadata)
+            elif isinstance(rec, Attachment):
+                attachments.append(rec)
+    except Exception as e:  # noqa: BLE001 - what came before stays reported
+        s.error = f"{type(e).__name__}: {e}"
     return {"path": str(path), "complete": s.complete, "error": s.error, "schemas": schemas, "channels": s.channels,
             "counts": counts, "bytes": nbytes, "metadata": metadata, "drops": drops, "messages": kept,
             "attachments": attachments,
             "duration_s": (t_last - t_first) / 1e9 if t_first is not None else 0.0}
-

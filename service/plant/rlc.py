@@ -132,9 +132,9 @@ def integrator(impl: str = "auto"):
         return rk4_steps
     try:
         from service._kernel import plant_steps as compiled
-    except ImportError:
+    except ImportError as e:
         if impl == "c":
-            raise
+            raise ImportError(f"the compiled plant integrator (service._kernel) is not built: {e}") from e
         return rk4_steps
     return compiled
 

@@ -590,3 +590,24 @@ def test_a_short_soak_regulates_answers_every_query_and_loses_no_record():
     assert res["recorder_written"] > 10_000 and not res["recorder_drops"] and res["recorder_state"] == "ok"
     assert res["rejected"] == {} and res["loop_ticks"] > 10_000
     assert res["rss_kib_end"] > 0 and res["cpu"]["plant_pct"] > 0
+
+
+@pytest.mark.parametrize(("zenoh", "expected"), [
+    ({"connect": ["tcp/127.0.0.1:7447"]}, ["tcp/127.0.0.1:0"]),  # a local stack: loopback only
+    ({}, ["tcp/127.0.0.1:0"]),
+    ({"connect": ["tcp/[::1]:7447", "tcp/localhost:7448"]}, ["tcp/127.0.0.1:0"]),
+    ({"connect": ["tcp/192.0.2.7:7447"]}, None),  # another host: Zenoh's own default, reachable from there
+    ({"connect": ["tcp/127.0.0.1:7447"], "multicast_scouting": True}, None),
+    ({"connect": ["tcp/127.0.0.1:7447"], "listen": ["tcp/127.0.0.1:9000"]}, ["tcp/127.0.0.1:9000"]),
+    ({"mode": "client", "connect": ["tcp/127.0.0.1:7447"]}, None),
+])
+def test_a_peer_that_only_talks_to_this_host_listens_on_loopback(zenoh, expected):
+    """Zenoh's default for a peer is every interface, and its gossip then links two local peers over the host's
+    own non-loopback address; a peer that can only meet peers on this host listens on loopback instead."""
+    from service.daemon.bus import zenoh_config
+
+    got = json.loads(zenoh_config(ZenohConfig(**zenoh)).get_json("listen/endpoints"))
+    if expected is None:
+        assert got != ["tcp/127.0.0.1:0"]
+    else:
+        assert got == expected

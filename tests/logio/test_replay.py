@@ -303,3 +303,22 @@ def test_a_log_recorded_by_the_previous_release_replays_identical():
     log = DATA / "source-v0.1.0-ea805d8.mcap"
     r = replay(log, progress=False)
     assert r["identical"] and r["compared"] == 500 and r["first_divergence"] is None, r
+
+
+def test_log_info_reports_a_foreign_log_where_it_stops_making_sense(tmp_path):
+    """A log whose /events channel is not JSON (another tool's encoding) is described up to there, with the
+    reason, not a traceback; the messages reader returns what came before."""
+    from clients.logtools import info
+    from service.logio.mcapfile import McapFile
+    from service.logio.reader import messages
+
+    path = tmp_path / "foreign.mcap"
+    f = McapFile(path)
+    f.channel("x/events", "energyctl.Event")
+    f.add("x/events", 0.0, {"t": 0.0, "seq": 0, "kind": "config", "detail": "{}"})
+    f.add_raw("x/events", 0.001, b"\x00\x01\xff not json")
+    f.close()
+    res = info(path)
+    assert res["truncated_at"] and "Error" in res["truncated_at"]
+    assert res["channels"]["x/events"]["messages"] == 2
+    assert messages(path, "/events") == [{"t": 0.0, "seq": 0, "kind": "config", "detail": "{}"}]
