@@ -10,7 +10,7 @@ from schemas.generate import config_keys
 
 def key_line(key: str, type_: str, default: str) -> str:
     """'key = default  [type]' for a value, 'key  [table]' for a table, 'key  [type; required]' without default."""
-    if type_ in ("table", "list of tables"):
+    if type_ in ("table", "list of tables", "tables by name"):
         optional = "; unset by default" if default == "unset" else ""
         value = f" = {default}" if type_ == "list of tables" else ""
         return f"{key}{value}  [{type_}{optional}]"

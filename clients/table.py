@@ -38,3 +38,33 @@ def metrics_table(labelled: list[tuple[list[str], dict]], label_headers: list[st
     headers = [*label_headers, *(c[1] for c in METRIC_COLUMNS)]
     rows = [[*labels, *(fmt(m.get(key)) for key, _, fmt in METRIC_COLUMNS)] for labels, m in labelled]
     return render(headers, rows)
+
+
+def _ms(v) -> str:
+    return "-" if v is None else f"{v * 1e3:.1f}"
+
+
+def _num(v, fmt: str = ".2f") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def network_tables(m: dict) -> str:
+    """A network run's metrics: one row per source, per bus, per event (netsim.network_metrics)."""
+    src = render(["source", "share %", "target %", "error pp", "P W", "v_min V", "v_max V", "mode", "feas viol"],
+                 [[s, _num(x["share_pct"], ".1f"), _num(x["share_target_pct"], ".1f"), _num(x["sharing_error_pp"]),
+                   _num(x["P_steady_W"], ".0f"), _num(x["v_min"]), _num(x["v_max"]), str(x["final_mode"]),
+                   str(x["feasibility_violations"])] for s, x in m["sources"].items()])
+    bus = render(["bus", "v_min V", "v_max V", "steady dev %"],
+                 [[b, _num(x["v_min"]), _num(x["v_max"]), _num(x["ss_dev_pct"])] for b, x in m["buses"].items()])
+    rows = []
+    for e in m["events"]:
+        what = f"{e['kind']} {e['target']}" + ("" if e["accepted"] else f" REFUSED: {e['reason']}")
+        buses = e["bus_back_in_band_s"].values()
+        terms = e["terminals_back_in_band_s"].values()
+        rows.append([f"{e['t_s']:.3f}", what,
+                     "never" if None in buses else _ms(max(buses, default=None)),
+                     _num(min(e["bus_min_V"].values(), default=None)),
+                     "never" if None in terms else _ms(max(terms, default=None)),
+                     _ms(e.get("sharing_in_band_s")), _num(e.get("inrush_A"), ".1f")])
+    ev = render(["t s", "event", "buses back ms", "bus min V", "terminals back ms", "sharing ms", "inrush A"], rows)
+    return "\n\n".join([src, bus, ev if rows else "no events"])

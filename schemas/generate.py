@@ -38,6 +38,7 @@ from pydantic_core import PydanticUndefined
 from schemas.codec import BY_MODEL, VERSION, Codec
 from schemas.component import ComponentConfig, LoadPeerConfig, PlantPeerConfig
 from schemas.messages import MESSAGE_MODELS
+from schemas.network import NetworkScenario
 from schemas.replies import REPLY_MODELS
 from schemas.scenario import Scenario
 
@@ -48,6 +49,7 @@ CONFIG_MODELS: dict[str, type[BaseModel]] = {
     "energyctl.PlantPeerConfig": PlantPeerConfig,
     "energyctl.LoadPeerConfig": LoadPeerConfig,
     "energyctl.Scenario": Scenario,
+    "energyctl.NetworkScenario": NetworkScenario,
 }
 
 
@@ -147,6 +149,7 @@ DOC_WIDTH = 120
 # (JSON Schema stem, what reads the file when the model's docstring does not say); the model is CONFIG_MODELS[stem]
 DOC_SECTIONS: list[tuple[str, str]] = [
     ("energyctl.Scenario", "`energyctl sim`, `compare`, `sweep`, `demo` and `bench`"),
+    ("energyctl.NetworkScenario", "`energyctl sim` (a file with kind = \"network\")"),
     ("energyctl.ComponentConfig", ""),
     ("energyctl.PlantPeerConfig", ""),
     ("energyctl.LoadPeerConfig", ""),
@@ -263,17 +266,19 @@ def toml_value(v) -> str:
     return str(v)
 
 
-def _model_in(tp) -> tuple[type[BaseModel] | None, bool]:
-    """(the model a field holds, whether as a list of them); (None, False) for a plain value."""
+def _model_in(tp) -> tuple[type[BaseModel] | None, str]:
+    """(the model a field holds, how: "" one table, "list" a list of them, "dict" tables by name); (None, "") for a
+    plain value."""
     for m in _members(_unannotated(tp)[0]):
         m = _unannotated(m)[0]
         if isinstance(m, type) and issubclass(m, BaseModel):
-            return m, False
-        if typing.get_origin(m) is list:
-            item = _unannotated(typing.get_args(m)[0])[0]
+            return m, ""
+        origin = typing.get_origin(m)
+        if origin in (list, dict):
+            item = _unannotated(typing.get_args(m)[-1])[0]
             if isinstance(item, type) and issubclass(item, BaseModel):
-                return item, True
-    return None, False
+                return item, "list" if origin is list else "dict"
+    return None, ""
 
 
 def _doc_of(model: type[BaseModel]) -> str:
@@ -285,8 +290,9 @@ def _doc_of(model: type[BaseModel]) -> str:
 def config_keys(model: type[BaseModel], prefix: str = "", defaults: BaseModel | None = None
                 ) -> list[tuple[str, str, str, str]]:
     """(dotted key, type, default, description) for every key of the model, its tables' keys after the table's
-    own row; a list of tables' keys as ``key[].sub``. ``defaults``: the instance whose values are the defaults
-    here (a table's default can differ from its model's own field defaults: ComponentConfig.forecast)."""
+    own row; a list of tables' keys as ``key[].sub``, tables by name as ``key.<name>.sub``. ``defaults``: the
+    instance whose values are the defaults here (a table's default can differ from its model's own field
+    defaults: ComponentConfig.forecast)."""
     out: list[tuple[str, str, str, str]] = []
     for name, field in model.model_fields.items():
         key = prefix + name
@@ -297,13 +303,16 @@ def config_keys(model: type[BaseModel], prefix: str = "", defaults: BaseModel | 
         else:
             default = field.get_default(call_default_factory=True)
         desc = field.description or ""
-        sub, is_list = _model_in(field.annotation)
+        sub, how = _model_in(field.annotation)
         if sub is not None:
             doc = _doc_of(sub)
             desc = f"{desc}. {doc}" if desc and doc else desc or doc
-            if is_list:
+            if how == "list":
                 out.append((key, "list of tables", toml_value(default), desc))
                 out += config_keys(sub, f"{key}[].")
+            elif how == "dict":
+                out.append((key, "tables by name", "required" if default is PydanticUndefined else "", desc))
+                out += config_keys(sub, f"{key}.<name>.")
             else:
                 out.append((key, "table", "unset" if default is None else "", desc))
                 out += config_keys(sub, f"{key}.", default if isinstance(default, BaseModel) else None)
@@ -319,6 +328,8 @@ def _key_line(key: str, type_: str, default: str, desc: str) -> str:
         head = f"- `{key}` ({type_}, required)"
     elif type_ == "table":
         head = f"- `{key}` (table{', optional' if default == 'unset' else ''})"
+    elif type_ == "tables by name":
+        head = f"- `{key}` (tables by name: `[{key}.NAME]`)"
     else:
         head = f"- `{key}` ({type_}; default `{default}`)"
     return "\n".join(wrap(f"{head}: {desc}" if desc else head, indent="  "))

@@ -101,6 +101,8 @@ class LoadAtBus(ProfileConfig):
                                                                            "and sines, W")
     R_ohm: Pos | None = Field(default=None, description="resistive: its resistance, Ω")
     v_min_V: Pos = Field(default=5.0, description="cpl: below this voltage it draws as a resistor, V")
+    active_from_s: float = Field(default=0.0, ge=0, allow_inf_nan=False,
+                                 description="the load draws nothing before this time, s (a load switched in)")
 
     @model_validator(mode="after")
     def _resistor(self) -> LoadAtBus:
@@ -140,6 +142,11 @@ class LayerConfig(Strict):
     v_ref_gain: Annotated[float, Field(ge=0, le=1)] = Field(
         default=0.5, description="per window, every source's v_ref moves by this x (nominal - the mean bus "
                                  "voltage over the window); 0: off")
+    v_ref_mode: Literal["common", "per-source"] = Field(
+        default="common", description="common: one v_ref offset for all; per-source: each source's v_ref moves "
+                                          "to its own terminal's window mean plus that correction, which removes "
+                                          "the sharing error a common v_ref leaves (P at a terminal = P^{r,in} "
+                                          "v_ref / v at steady state)")
     v_ref_max_offset_V: NonNeg = Field(default=8.0, description="bound of that v_ref offset, V")
     idle_power_W: NonNeg = Field(default=30.0, description="below this |power| a source's lines count as idle "
                                                            "(excluded from the live sum; its controller idles)")
@@ -162,6 +169,9 @@ class NetworkScenario(Strict):
     description: str = Field(default="", description="free text")
     seed: int = Field(default=1, description="seed of the sensor noise and the interaction-message losses")
     nominal_v_V: Pos = Field(default=80.0, description="the network's nominal voltage, V")
+    start: Literal["steady", "rest"] = Field(
+        default="steady", description="steady: the network starts at the DC operating point of its loads at t = 0, "
+                                      "shared as configured; rest: every current zero, every voltage nominal")
     timing: NetworkTiming = NetworkTiming()
     sensor: SensorConfig = SensorConfig()
     sources: dict[str, SourceConfig] = Field(description="the controllable sources, by name")

@@ -29,12 +29,13 @@ SERVICE_LAYERS = {
     "service.plant": ("service.core.types", "service.plant", "service._kernel"),
     "service.forecast": ("service.core", "service.plant"),
     "service.sim": ("service.core", "service.plant", "service.forecast"),
+    "service.netsim": ("service.core", "service.plant", "service.forecast", "service.sim"),
     "service.priority": (),
     "service.logio": ("service.logio", "service.core", "service.priority", "service"),
     "service.replay": ("service.core", "service.logio"),
     "service.daemon": ("service",),
 }
-PURE = ("service.core", "service.plant", "service.forecast", "service.sim")
+PURE = ("service.core", "service.plant", "service.forecast", "service.sim", "service.netsim")
 IMPURE_MODULES = ("time", "datetime", "threading", "_thread", "concurrent", "asyncio", "socket", "ssl", "selectors",
                   "subprocess", "multiprocessing", "signal", "os", "ctypes", "zenoh", "mcap", "random", "secrets")
 

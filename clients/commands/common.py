@@ -15,6 +15,18 @@ DEMO_SCENARIO = EMBEDDED / "demo.toml"
 CONTROLLERS = ("fblc", "smc", "lqr", "bm", "fixed")
 
 
+def is_network_file(path: str) -> bool:
+    """Whether the TOML file at path is a network scenario (kind = "network"); False if it cannot be read (the
+    one-source loader then says why)."""
+    import tomllib
+
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f).get("kind") == "network"
+    except (OSError, tomllib.TOMLDecodeError):
+        return False
+
+
 def load(path: str, overrides: list[str]):
     """The scenario at path with the --set overrides applied (ScenarioError names a bad field)."""
     return load_scenario(path, overrides)

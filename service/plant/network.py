@@ -122,11 +122,38 @@ def integrator(impl: str = "auto"):
         return steps
     try:
         from service._kernel import network_steps
-    except ImportError:
+    except ImportError as e:
         if impl == "c":
-            raise
+            raise ImportError(f"the compiled network integrator (service._kernel) is not built: {e}") from e
         return steps
     return network_steps
+
+
+class SwitchedProfile:
+    """A load profile that draws nothing before ``from_s`` (s): a load switched in."""
+
+    def __init__(self, profile: Profile, from_s: float):
+        self.profile, self.from_s = profile, from_s
+
+    def value(self, t: float) -> float:
+        return self.profile.value(t) if t >= self.from_s else 0.0
+
+    def rate(self, t: float) -> float:
+        return self.profile.rate(t) if t >= self.from_s else 0.0
+
+    def range_over(self, t0: float, t1: float) -> tuple[float, float, float, float]:
+        """(min, max, min rate, max rate) over [t0, t1] (W, W/s)."""
+        if t1 < self.from_s:
+            return 0.0, 0.0, 0.0, 0.0
+        lo, hi, dlo, dhi = self.profile.range_over(max(t0, self.from_s), t1)
+        if t0 < self.from_s:
+            lo, hi, dlo, dhi = min(lo, 0.0), max(hi, 0.0), min(dlo, 0.0), max(dhi, 0.0)
+        return lo, hi, dlo, dhi
+
+    def step_times(self) -> list[float]:
+        """When it jumps: its switching-in and its steps (s)."""
+        out = [self.from_s] if self.from_s > 0 else []
+        return out + [t for t in self.profile.times if t >= self.from_s] if self.profile.kind == "steps" else out
 
 
 class NetworkPlant:
@@ -158,13 +185,63 @@ class NetworkPlant:
                     self.lines[LINE_W * j + 4] = 0.0
         self.load_list = list(net.loads.values())
         self.load_names = list(net.loads)
-        self.profiles = [Profile(ld, net.base_dir) if ld.type == "cpl" else None for ld in self.load_list]
+        self.profiles = [SwitchedProfile(Profile(ld, net.base_dir), ld.active_from_s) if ld.type == "cpl" else None
+                         for ld in self.load_list]
         self.loads = array("d")
         for ld in self.load_list:
             G = 1.0 / ld.R_ohm if ld.type == "resistive" else 0.0
             self.loads.extend((self.node_index[ld.bus], CPL if ld.type == "cpl" else RESISTIVE, G, 0.0, ld.v_min_V))
         self.r = array("d", [0.0] * len(self.sources))
         self.t = 0.0
+
+    def start_steady(self, shares: list[float], v_nom: float) -> None:
+        """Start from a DC operating point instead of rest: the connected sources deliver the loads' current at t = 0
+        in the given shares, lines carry the flow Ohm's law gives, the buses' mean voltage is v_nom, each source's
+        u covers its own R drop (disconnected sources sit at v_nom with no current). Loads taken as currents at
+        v_nom, so a small transient remains where the buses are not exactly at v_nom."""
+        import numpy as np
+
+        nn, ns = len(self.v_n), len(self.i_s)
+        on = [j for j in range(ns) if self.connected(self.sources[j])]
+        demand = 0.0
+        inj = np.zeros(nn)
+        for k, ld in enumerate(self.load_list):
+            n = self.node_index[ld.bus]
+            i = (self.profiles[k].value(0.0) / v_nom if ld.type == "cpl" else
+                 (v_nom / ld.R_ohm if ld.active_from_s <= 0.0 else 0.0))
+            inj[n] -= i
+            demand += i
+        weight = sum(shares[j] for j in on) or 1.0
+        for j in on:
+            inj[j] += shares[j] / weight * demand
+        lap = np.zeros((nn, nn))
+        for j in range(len(self.i_l)):
+            if self.closed(j):
+                o = LINE_W * j
+                a, b, g = int(self.lines[o + 2]), int(self.lines[o + 3]), 1.0 / max(self.lines[o], 1e-6)
+                lap[a, a] += g
+                lap[b, b] += g
+                lap[a, b] -= g
+                lap[b, a] -= g
+        live = [n for n in range(nn) if lap[n, n] > 0.0]
+        v = np.full(nn, v_nom)
+        if live:
+            buses = [n for n in live if n >= ns] or live
+            sub_lap = lap[np.ix_(live, live)]
+            mean_row = np.array([[1.0 / len(buses) if n in buses else 0.0 for n in live]])
+            a_mat = np.vstack([sub_lap, mean_row])
+            rhs = np.concatenate([inj[live], [v_nom]])
+            v[live] = np.linalg.lstsq(a_mat, rhs, rcond=None)[0]
+        for n in range(nn):
+            self.v_n[n] = float(v[n])
+        for j in range(len(self.i_l)):
+            o = LINE_W * j
+            a, b = int(self.lines[o + 2]), int(self.lines[o + 3])
+            self.i_l[j] = float((v[a] - v[b]) / max(self.lines[o], 1e-6)) if self.closed(j) else 0.0
+        for j in range(ns):
+            self.i_s[j] = float(inj[j]) if j in on else 0.0
+            u = self.v_n[j] + self.src[SRC_W * j] * self.i_s[j]
+            self.u_s[j] = min(max(u, self.src[SRC_W * j + 2]), self.src[SRC_W * j + 3])
 
     # ------------------------------------------------------------------ topology
     def lines_at(self, node: str) -> list[int]:
@@ -210,7 +287,7 @@ class NetworkPlant:
         ld = self.load_list[k]
         v = self.v_n[self.node_index[ld.bus]]
         if ld.type == "resistive":
-            return v * v / ld.R_ohm
+            return v * v / ld.R_ohm if t >= ld.active_from_s else 0.0
         P = self.profiles[k].value(t)
         return P if v >= ld.v_min_V else P * v * v / (ld.v_min_V * ld.v_min_V)
 
@@ -225,6 +302,9 @@ class NetworkPlant:
                 Pa = prof.value(t)
                 self.loads[LOAD_W * k + 2] = Pa
                 self.loads[LOAD_W * k + 3] = (prof.value(t + T) - Pa) / n_sub
+            else:  # resistive: switched in at the first period that starts at or after its time
+                ld = self.load_list[k]
+                self.loads[LOAD_W * k + 2] = 1.0 / ld.R_ohm if t >= ld.active_from_s else 0.0
         self._steps(T / n_sub, n_sub, self.src, self.r, self.lines, self.node_C, self.loads, self.i_s, self.u_s,
                     self.i_l, self.v_n)
         self.t = t + T

@@ -1,0 +1,80 @@
+"""One network source's controller: the core, and the modes a source on a network needs around it.
+
+The core (``service.core.make_core``) regulates y_z to y_ref = P^{r,in} v_ref / v. On a network three hazards
+of the design notes come around it, and this wrapper answers them without touching the law:
+
+* **idle** — y_z = y_ref says nothing about v when P^{r,in} is near zero, and a source that is not connected
+  has no power to follow: below ``idle_power_W`` (and whenever it is disconnected) the source holds its voltage
+  instead, u -> v_ref - R_droop i with time constant ``idle_tau_s`` (du/dt = (u_target - u) / tau, within the
+  slew limit). It leaves idle above ``idle_exit`` x that power. The core is told what was applied
+  (``core.hold(seq, du_dt)``), so its delay prediction stays right across the switch.
+* **stale interaction variables** — when the neighbours' messages are older than the caller's bound
+  (``fresh`` False), P^{r,in} falls back to the source's own terminal power, -v i_out from its own sample: the
+  own-terminal law, which needs no communication.
+* **light load** is the core's i_floor (``controller.limits.i_floor_A``): the notes measured a 2 A floor
+  collapsing a source that carries 200 W; the default 0.5 A does not.
+
+Sign convention (as the core's): P^{r,in} is negative when the source delivers power; a source delivering P W
+into its lines has P^{r,in} = -P. Pure: no clocks, no I/O.
+"""
+
+from __future__ import annotations
+
+from schemas.scenario import ControllerConfig
+from service.core.types import Incoming, Sample
+
+ACTIVE, IDLE, FALLBACK = 0, 1, 2
+MODES = ("active", "idle", "fallback")
+
+
+class SourceController:
+    """The core of one source with its idle mode and its stale-data fallback (see the module docstring)."""
+
+    def __init__(self, core, period_s: float, idle_power_W: float = 30.0, idle_exit: float = 1.5,
+                 droop_ohm: float = 0.4, idle_tau_s: float = 5e-3):
+        self.core = core
+        self.T = period_s
+        self.idle_power_W, self.idle_exit = idle_power_W, idle_exit
+        self.droop_ohm, self.idle_tau_s = droop_ohm, idle_tau_s
+        self.mode = IDLE
+        self.idle = True
+        self.switches = 0  # entries into and exits from idle
+
+    @property
+    def v_ref_V(self) -> float:
+        return self.core.cfg.v_ref_V
+
+    def set_v_ref(self, v_ref_V: float) -> None:
+        """Move the voltage reference (the interconnection layer's per-window correction), between two steps."""
+        cfg: ControllerConfig = self.core.cfg
+        if v_ref_V != cfg.v_ref_V:
+            self.core.set_gains(cfg.model_copy(update={"v_ref_V": v_ref_V}))
+
+    def step(self, s: Sample, P_in_W: float, P_in_dot_W_per_s: float, connected: bool, fresh: bool
+             ) -> tuple[float, float]:
+        """(du/dt V/s, planned du/dt for the period after V/s) answering sample s. P_in_W, P_in_dot_W_per_s: the
+        incoming interaction variable P^{r,in} (W, negative when delivering) and its rate, as last received;
+        connected: its breaker is closed; fresh: that P^{r,in} is recent enough to use."""
+        if not fresh:
+            P_in_W, P_in_dot_W_per_s = -s.v * s.i_load, 0.0  # its own terminal power
+        power = abs(P_in_W)
+        if not connected:
+            idle = True
+        elif self.idle:
+            idle = power < self.idle_exit * self.idle_power_W
+        else:
+            idle = power < self.idle_power_W
+        if idle != self.idle:
+            self.switches += 1
+            self.idle = idle
+        if idle:
+            self.mode = IDLE
+            lim = self.core.cfg.limits
+            target = self.v_ref_V - self.droop_ohm * s.i
+            r = (target - s.u) / self.idle_tau_s
+            r = min(max(r, -lim.du_dt_max_V_per_s), lim.du_dt_max_V_per_s)
+            self.core.hold(s.seq, r)
+            return r, 0.0
+        self.mode = ACTIVE if fresh else FALLBACK
+        out = self.core.step(s, Incoming(P_in_W, P_in_dot_W_per_s))
+        return out.du_dt, out.du_dt_next

@@ -1,0 +1,374 @@
+"""Offline closed loop of a DC network: the network plant, one controller per source, the interconnection layer.
+
+Each control period, for every source s: its sensor samples (i_s, v_s, u_s, i_out) with i_out the current
+leaving its terminal into its lines; its controller (``service.core.source.SourceController`` around the same
+core every driver uses) answers with du/dt; the command goes through the loop delay to the plant. What each
+source follows, P^{r,in}_s (W, negative when it delivers), is made by the interconnection layer from the power
+each source's lines draw at its terminal, P_s = v_s i_out_s (the line-end power oriented out of the source):
+
+* ``layer.mode = "none"``: P^{r,in}_s = -P_s, the source's own lines (each regulates its own terminal);
+* ``layer.mode = "live-sum"``: P^{r,in}_s = -alpha_s sum_k P_k, alpha_s = share_s / (sum of the shares of the
+  connected sources that carry more than ``idle_power_W``): the load shared in the configured proportions,
+  rescaled at once when a source trips; once per window every source's v_ref moves by ``v_ref_gain`` x
+  (nominal - the buses' mean voltage over the window), which restores the bus voltage.
+
+P^{r,in}_s reaches source s through its link (``links``): delayed by whole samples, lost with a seeded
+probability (the source keeps the last value it got), or silent; a value older than ``stale_s`` makes the source
+fall back to its own terminal. Events trip or close breakers; a ``connect`` event asks the layer, which checks
+the source's forecast Z^{r,out} against Z^{r,in} of the current window (``service.forecast``) and closes its
+breakers only if feasible. Pure: no clocks, no I/O; the same scenario and seed give the same bits.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from schemas.network import NetworkScenario
+from service.core import effective_gain, make_core
+from service.core.feasibility import FeasibilityMonitor, incoming_range, load_box, tau_prime
+from service.core.source import ACTIVE, MODES, SourceController
+from service.forecast import forecast_outgoing
+from service.plant.network import NetworkPlant
+from service.plant.rlc import CommandSchedule, Sensor
+from service.sim import BAND_SETTLE, substeps
+
+STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal
+FORECAST_MARGIN = 0.05  # the layer's load box is widened by this fraction for the feasibility checks
+SOURCE_SIGNALS = ("i", "v", "u", "i_out", "P", "P_in", "du_dt", "mode", "v_ref")
+
+
+@dataclass
+class Event:
+    """What happened at an event: its time, kind and target, and the layer's answer to a connect request."""
+
+    t: float
+    kind: str
+    target: str
+    accepted: bool = True
+    reason: str = ""
+
+
+@dataclass
+class NetworkResult:
+    net: NetworkScenario
+    t: np.ndarray
+    sources: dict[str, dict[str, np.ndarray]]  # per source: SOURCE_SIGNALS over time
+    buses: dict[str, np.ndarray]  # bus voltages over time (V)
+    lines: dict[str, np.ndarray]  # line currents over time (A, from a to b)
+    events: list[Event]
+    metrics: dict
+    violations: dict[str, int] = field(default_factory=dict)  # feasibility excursions per source
+
+
+def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bool = True) -> NetworkResult:
+    """The network's closed loop offline (see the module docstring). impl: the cores' and the plant's
+    implementation (service.core.make_core)."""
+    tm, lay = net.timing, net.layer
+    T = 1.0 / tm.control_rate_hz
+    n_sub = substeps(T, tm.plant_step_s)
+    N = int(round(tm.duration_s / T))
+    d = tm.delay_samples
+    plant = NetworkPlant(net, impl)
+    names = list(net.sources)
+    ns = len(names)
+    cfgs = list(net.sources.values())
+    ctls, sensors, delays, scheds, feas, taus = [], [], [], [], [], []
+    for j, src in enumerate(cfgs):
+        model = src.model_params()
+        core = make_core(src.controller, model, T, d, impl)
+        ctls.append(SourceController(core, T, idle_power_W=lay.idle_power_W))
+        sensors.append(Sensor(net.sensor, net.seed * 1000 + j))
+        delays.append(deque([(0.0, 0.0)] * d))
+        scheds.append(CommandSchedule(0))
+        feas.append(FeasibilityMonitor(lay.window_s))
+        taus.append(tau_prime(model.L_H, model.R_ohm, effective_gain(src.controller, model)))
+    shares = [s.share for s in cfgs]
+    if net.start == "steady":
+        plant.start_steady(shares, net.nominal_v_V)
+    v_ref0 = [s.controller.v_ref_V for s in cfgs]
+    win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
+    # links: per receiving source, (delay in samples, loss, silent from)
+    links = []
+    for name in names:
+        ln = net.links.get(name) or net.links.get("*")
+        links.append((int(round(ln.delay_s / T)), ln.loss, ln.silent_from_s) if ln else (0, 0.0, None))
+    link_rng = np.random.default_rng([net.seed, 0x11CC])
+    inbox: list[deque] = [deque() for _ in range(ns)]  # (arrival sample, t sent, P_in)
+    got = [(-math.inf, 0.0)] * ns  # (t sent, P_in) of the newest P^{r,in} each source received
+    pending_events = sorted(net.events, key=lambda e: e.t_s)
+    events: list[Event] = []
+    bus_idx = [plant.node_index[b] for b in net.buses]
+    win_sum, win_n, win_k = 0.0, 0, 0
+    _set_feasibility_ranges(plant, net, feas, taus, 0, shares)
+
+    t_arr = np.zeros(N)
+    sig = {name: {k: np.zeros(N) for k in SOURCE_SIGNALS} for name in names}
+    bus_v = {b: np.zeros(N) for b in net.buses}
+    line_i = {ln: np.zeros(N) for ln in net.lines}
+    v_nom = net.nominal_v_V
+    diverged_at = None
+    P = [0.0] * ns
+    r = [0.0] * ns
+    n = 0
+    for k in range(N):
+        t = plant.t
+        while pending_events and pending_events[0].t_s <= t + 1e-12:
+            events.append(_apply_event(pending_events.pop(0), t, plant, net, ctls, shares, taus, T, d, impl))
+        connected = [plant.connected(name) for name in names]
+        samples = []
+        for j in range(ns):
+            i_out = plant.terminal_current(j)
+            s = sensors[j].measure(k, t, plant.i_s[j], plant.v_n[j], plant.u_s[j], i_out)
+            samples.append(s)
+            P[j] = s.v * s.i_load if connected[j] else 0.0  # the power its lines draw, as measured
+        # the layer: what each source is to deliver
+        if lay.mode == "live-sum":
+            carrying = [j for j in range(ns) if connected[j] and abs(P[j]) >= lay.idle_power_W]
+            total = sum(P[j] for j in carrying)
+            weight = sum(shares[j] for j in carrying) or 1.0
+            want = [-(shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
+        else:
+            want = [-P[j] for j in range(ns)]
+        # the links, then each controller
+        for j in range(ns):
+            delay_k, loss, silent = links[j]
+            if not (silent is not None and t >= silent) and not (loss and link_rng.random() < loss):
+                inbox[j].append((k + delay_k, t, want[j]))
+            q = inbox[j]
+            while q and q[0][0] <= k:
+                _, t_sent, value = q.popleft()
+                got[j] = (t_sent, value)
+            fresh = t - got[j][0] <= STALE_S
+            du, du_next = ctls[j].step(samples[j], got[j][1], 0.0, connected[j], fresh)
+            if d:
+                delays[j].append((du, du_next))
+                du, du_next = delays[j].popleft()
+            scheds[j].arrive(k, du, du_next)
+            r[j] = scheds[j].take(k)[0]
+            est = ctls[j].core.out.est
+            if ctls[j].mode == ACTIVE and est is not None and t >= 5.0 * cfgs[j].controller.deriv_tau_s:
+                feas[j].update(t, est.P_r_out_port, est.Qdot_r_out_port)
+            row = sig[names[j]]
+            row["i"][k], row["v"][k], row["u"][k] = plant.i_s[j], plant.v_n[j], plant.u_s[j]
+            row["i_out"][k], row["P"][k], row["P_in"][k] = plant.terminal_current(j), P[j], got[j][1]
+            row["du_dt"][k], row["mode"][k], row["v_ref"][k] = r[j], ctls[j].mode, ctls[j].v_ref_V
+        t_arr[k] = t
+        for b, bi in zip(net.buses, bus_idx, strict=True):
+            bus_v[b][k] = plant.v_n[bi]
+        for j, ln in enumerate(net.lines):
+            line_i[ln][k] = plant.i_l[j]
+        n = k + 1
+        # the layer's window: move v_ref to restore the buses, check the next window's feasibility ranges
+        if bus_idx:
+            win_sum += sum(plant.v_n[bi] for bi in bus_idx) / len(bus_idx)
+            win_n += 1
+            for j in range(ns):
+                win_term[j] += samples[j].v
+        if int((t + T) // lay.window_s + 1e-9) != win_k:
+            win_k = int((t + T) // lay.window_s + 1e-9)
+            if lay.mode == "live-sum" and lay.v_ref_gain > 0 and win_n:
+                correction = lay.v_ref_gain * (v_nom - win_sum / win_n)
+                for j in range(ns):
+                    if lay.v_ref_mode == "per-source" and connected[j] and ctls[j].mode == ACTIVE:
+                        # where it sits (sharing exactly needs v_ref = v at its terminal), moved with the buses
+                        target = win_term[j] / win_n + correction
+                    else:
+                        target = ctls[j].v_ref_V + correction
+                    lo, hi = v_ref0[j] - lay.v_ref_max_offset_V, v_ref0[j] + lay.v_ref_max_offset_V
+                    ctls[j].set_v_ref(min(max(target, lo), hi))
+            win_sum, win_n = 0.0, 0
+            win_term = [0.0] * ns
+            _set_feasibility_ranges(plant, net, feas, taus, win_k, shares)
+        plant.advance(r, T, n_sub)
+        if not plant.finite() or any(not (0.5 * v_nom < v < 2.0 * v_nom) for v in plant.v_n):
+            diverged_at = plant.t
+            if stop_on_divergence:
+                break
+    sig = {name: {k: a[:n] for k, a in row.items()} for name, row in sig.items()}
+    res = NetworkResult(net, t_arr[:n], sig, {b: a[:n] for b, a in bus_v.items()},
+                        {ln: a[:n] for ln, a in line_i.items()}, events, {},
+                        {name: f.count for name, f in zip(names, feas, strict=True)})
+    for j, prof in enumerate(plant.profiles):  # load steps are events of the metrics too
+        if prof is not None:
+            res.events += [Event(ts, "load", plant.load_names[j]) for ts in prof.step_times() if ts < tm.duration_s]
+    res.events.sort(key=lambda e: e.t)
+    res.metrics = network_metrics(res, diverged_at, ctls)
+    return res
+
+
+def _box(plant: NetworkPlant, net: NetworkScenario, k: int) -> tuple[float, float, float, float]:
+    """The network's load box over window k (W, W/s), widened by FORECAST_MARGIN; resistive loads at nominal."""
+    w = net.layer.window_s
+    t0, t1 = k * w, min((k + 1) * w, net.timing.duration_s)
+    lo = hi = dlo = dhi = 0.0
+    for j, ld in enumerate(plant.load_list):
+        if ld.type == "resistive":
+            p = net.nominal_v_V ** 2 / ld.R_ohm
+            lo, hi = lo + p, hi + p
+        else:
+            a, b, c, e = plant.profiles[j].range_over(t0, max(t1, t0 + 1e-9))
+            lo, hi, dlo, dhi = lo + a, hi + b, dlo + c, dhi + e
+    return load_box(lo, hi, dlo, dhi, FORECAST_MARGIN)
+
+
+def _set_feasibility_ranges(plant, net, feas, taus, k, shares) -> None:
+    """Z^{r,in}[k] of every source: its share of the network's load box over window k."""
+    box = _box(plant, net, k)
+    total = sum(shares) or 1.0
+    for j, f in enumerate(feas):
+        a = shares[j] / total
+        f.set_range(k, incoming_range(a * box[0], a * box[1], a * box[2], a * box[3], taus[j]))
+
+
+def _apply_event(ev, t: float, plant: NetworkPlant, net: NetworkScenario, ctls, shares, taus, T, d, impl) -> Event:
+    lines = [plant.line_names.index(ev.target)] if ev.target in net.lines else plant.lines_at(ev.target)
+    if ev.kind == "trip":
+        for j in lines:
+            plant.set_breaker(j, False)
+        return Event(t, "trip", ev.target)
+    if ev.kind == "close":
+        for j in lines:
+            plant.set_breaker(j, True)
+        return Event(t, "close", ev.target)
+    # connect: the layer checks the source's forecast against its share of the current window
+    s = list(net.sources).index(ev.target)
+    src = net.sources[ev.target]
+    connected = [plant.connected(n) for n in net.sources]
+    weight = sum(shares[j] for j in range(len(shares)) if connected[j] or j == s)
+    box = _box(plant, net, int(t // net.layer.window_s))
+    a = shares[s] / weight
+    f = forecast_outgoing(ctls[s].core.cfg, src.model_params(), T, d, tuple(a * x for x in box), taus[s],
+                          max_ramp_s=net.layer.window_s, impl=impl)
+    if not f.feasible:
+        return Event(t, "connect", ev.target, False, f.reason)
+    for j in lines:
+        plant.set_breaker(j, True)
+    return Event(t, "connect", ev.target, True, "")
+
+
+def _back_in_band(t: np.ndarray, v: np.ndarray, t0: float, t1: float, target: float, band: float) -> float | None:
+    """Seconds from t0 until v stays within +-band x target for the rest of [t0, t1) (None: not by t1)."""
+    sel = (t >= t0) & (t < t1)
+    ts, vs = t[sel], v[sel]
+    if len(ts) == 0:
+        return None
+    outside = np.nonzero(np.abs(vs - target) > band * abs(target))[0]
+    if len(outside) == 0:
+        return 0.0
+    if outside[-1] == len(ts) - 1:
+        return None
+    return float(ts[outside[-1] + 1] - t0)
+
+
+def _smooth(x: np.ndarray, n: int) -> np.ndarray:
+    """Moving average over n samples (the first n - 1 over what there is)."""
+    c = np.cumsum(np.insert(x, 0, 0.0))
+    out = (c[n:] - c[:-n]) / n
+    head = c[1:n] / np.arange(1, n)
+    return np.concatenate([head, out])[:len(x)]
+
+
+SHARE_BAND_PP = 2.0  # sharing counts as reached within this many percentage points of the configured shares
+SHARE_SMOOTH_S = 0.005  # over powers averaged over this long (s)
+
+
+def network_metrics(res: NetworkResult, diverged_at: float | None, ctls) -> dict:
+    """Per source and for the network: bands, sharing, recovery after each event, inrush, feasibility.
+
+    After each event (a breaker, a connect request, a load step): the time until every bus is back within +-2 % of
+    nominal; until each terminal is back within +-2 % of where it settles (its mean over the last 50 ms before the
+    next event: a terminal moves to share the load, the buses are held at nominal, not the terminals), and until it
+    is within +-2 % of its own v_ref; until the sharing stays within SHARE_BAND_PP of the configured shares; and at
+    a close its line's inrush (peak |i| in 50 ms) and how far each bus moved."""
+    net, t = res.net, res.t
+    v_nom = net.nominal_v_V
+    n = len(t)
+    T = 1.0 / net.timing.control_rate_hz
+    tail = t >= (t[-1] - 0.1 * (t[-1] - t[0]) if n else 0.0)  # the last 10 %
+    names = list(net.sources)
+    shares = {s: net.sources[s].share for s in names}
+    steady_P = {s: float(np.mean(res.sources[s]["P"][tail])) if n else 0.0 for s in names}
+    carrying = [s for s in names if abs(steady_P[s]) >= net.layer.idle_power_W]
+    total_P = sum(steady_P[s] for s in carrying) or 1.0
+    total_share = sum(shares[s] for s in carrying) or 1.0
+    m: dict = {"diverged": diverged_at is not None, "diverged_at_s": diverged_at, "t_end": float(t[-1]) if n else 0.0,
+               "sources": {}, "buses": {}, "events": []}
+    for s in names:
+        row = res.sources[s]
+        v = row["v"]
+        m["sources"][s] = {
+            "v_min": float(v.min()) if n else None, "v_max": float(v.max()) if n else None,
+            "P_steady_W": steady_P[s],
+            "share_pct": 100.0 * steady_P[s] / total_P if s in carrying else 0.0,
+            "share_target_pct": 100.0 * shares[s] / total_share if s in carrying else 0.0,
+            "sharing_error_pp": (100.0 * (steady_P[s] / total_P - shares[s] / total_share) if s in carrying
+                                 else None),
+            "terminal_dev_pct": float(np.max(np.abs(v[tail] - v_nom)) / v_nom * 100) if n else None,
+            "mode_switches": ctls[names.index(s)].switches,
+            "final_mode": MODES[int(row["mode"][-1])] if n else None,
+            "feasibility_violations": res.violations.get(s, 0),
+        }
+    # steady state: the 100 ms before each event and before the end, where at least 50 ms passed since the last one
+    marks = sorted({e.t for e in res.events} | {float(t[-1]) + T if n else 0.0})
+    steady = [(t >= b - 0.1) & (t < b) & (t >= a + 0.05) for a, b in zip([0.0, *marks], marks, strict=False)]
+    steady = [s for s in steady if s.any()]
+    for b, v in res.buses.items():
+        m["buses"][b] = {"v_min": float(v.min()) if n else None, "v_max": float(v.max()) if n else None,
+                         "ss_dev_pct": max((abs(float(np.mean(v[s])) - v_nom) / v_nom * 100 for s in steady),
+                                           default=None)}
+    # the sharing over time: each source's part of what the carrying sources deliver, against its share
+    k_smooth = max(1, int(round(SHARE_SMOOTH_S / T)))
+    P_s = {s: _smooth(res.sources[s]["P"], k_smooth) for s in names} if n else {}
+    ends = sorted({e.t for e in res.events})
+    # a terminal is judged against its own reference v_ref (which the layer moves): where the source's law
+    # takes it; with the layer off that is nominal
+    terminal_dev = {s: np.abs(res.sources[s]["v"] - res.sources[s]["v_ref"]) / res.sources[s]["v_ref"] for s in names}
+    for ev in res.events:
+        t1 = next((x for x in ends if x > ev.t + 1e-9), float(t[-1]) + T if n else math.inf)
+        settled = (t >= t1 - 0.05) & (t < t1)
+        window = (t >= ev.t) & (t < t1)
+        e = {"t_s": ev.t, "kind": ev.kind, "target": ev.target, "accepted": ev.accepted, "reason": ev.reason,
+             "bus_back_in_band_s": {b: _back_in_band(t, v, ev.t, t1, v_nom, BAND_SETTLE)
+                                    for b, v in res.buses.items()},
+             "bus_min_V": {b: float(v[t >= ev.t].min()) if (t >= ev.t).any() else None for b, v in res.buses.items()},
+             "terminals_back_in_band_s": {
+                 s: _back_in_band(t, res.sources[s]["v"], ev.t, t1, float(np.mean(res.sources[s]["v"][settled])),
+                                  BAND_SETTLE) if settled.any() else None for s in names},
+             "terminals_near_v_ref_s": {
+                 s: _settle_time(t[window], terminal_dev[s][window], BAND_SETTLE, ev.t) for s in names}}
+        if n and settled.any():
+            after = t >= ev.t
+            on = [s for s in names if abs(float(np.mean(res.sources[s]["P"][settled]))) >= net.layer.idle_power_W]
+            if len(on) > 1:
+                tot = sum(P_s[s] for s in on)
+                w = sum(shares[s] for s in on)
+                err = np.max([np.abs(100.0 * (P_s[s] / np.where(tot == 0, 1.0, tot) - shares[s] / w)) for s in on],
+                             axis=0)
+                sel = after & (t < t1)
+                e["sharing_in_band_s"] = _settle_time(t[sel], err[sel], SHARE_BAND_PP, ev.t)
+        if ev.kind in ("close", "connect") and ev.accepted:
+            lines = [ev.target] if ev.target in net.lines else [
+                ln for ln, c in net.lines.items() if ev.target in (c.a, c.b)]
+            after = (t >= ev.t) & (t < ev.t + 0.05)
+            e["inrush_A"] = max(float(np.max(np.abs(res.lines[ln][after]))) if after.any() else 0.0 for ln in lines)
+            near = (t >= ev.t - 0.01) & (t < ev.t)
+            e["bus_move_V"] = {b: float(np.max(np.abs(v[after] - np.mean(v[near])))) if after.any() and near.any()
+                               else None for b, v in res.buses.items()}
+        m["events"].append(e)
+    return m
+
+
+def _settle_time(t: np.ndarray, err: np.ndarray, bound: float, t0: float) -> float | None:
+    """Seconds from t0 until err stays at or below bound to the end of t (None: not by then)."""
+    if len(t) == 0:
+        return None
+    above = np.nonzero(err > bound)[0]
+    if len(above) == 0:
+        return 0.0
+    if above[-1] == len(t) - 1:
+        return None
+    return float(t[above[-1] + 1] - t0)
