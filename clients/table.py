@@ -63,7 +63,7 @@ def network_tables(m: dict) -> str:
         terms = e["terminals_back_in_band_s"].values()
         rows.append([f"{e['t_s']:.3f}", what,
                      "never" if None in buses else _ms(max(buses, default=None)),
-                     _num(min(e["bus_min_V"].values(), default=None)),
+                     _num(min((v for v in e["bus_min_V"].values() if v is not None), default=None)),
                      "never" if None in terms else _ms(max(terms, default=None)),
                      _ms(e.get("sharing_in_band_s")), _num(e.get("inrush_A"), ".1f")])
     ev = render(["t s", "event", "buses back ms", "bus min V", "terminals back ms", "sharing ms", "inrush A"], rows)
