@@ -100,3 +100,18 @@ def test_a_source_with_nothing_to_deliver_idles_at_its_reference():
     assert 79.9 < lo and hi < 80.1
     lo, hi = _island(0.0)
     assert hi - lo > 5.0
+
+
+def test_a_feasible_source_plugs_in_gently_and_an_infeasible_one_is_refused():
+    """Plug-in: the layer checks the source's forecast against its share of the window before closing its line.
+    A feasible one closes with a small inrush and barely moves the bus, then shares; one whose gain is too slow
+    for the load band is refused with the reason, its breaker stays open and nothing moves."""
+    m = _run("plug-in").metrics
+    plug = next(e for e in m["events"] if e["kind"] == "connect")
+    assert plug["accepted"] and plug["inrush_A"] <= 20.0 and plug["bus_move_V"]["bus"] <= 2.0
+    assert abs(m["sources"]["S3"]["sharing_error_pp"]) <= 2.0 and m["sources"]["S3"]["final_mode"] == "active"
+    res = _run("plug-in", "sources.S3.controller.K_per_s=10.0")
+    plug = next(e for e in res.metrics["events"] if e["kind"] == "connect")
+    assert not plug["accepted"] and plug["reason"]
+    assert res.metrics["sources"]["S3"]["final_mode"] == "idle"
+    assert np.all(res.lines["L3"] == 0.0) and np.all(res.sources["S3"]["P"] == 0.0)
