@@ -95,7 +95,7 @@ def add_config_command(subparsers, name: str, *, help: str, description: str, mo
 def add_core(parser: argparse.ArgumentParser) -> None:
     """--core: which implementation of the control core (and the plant's integrator) runs."""
     parser.add_argument("--core", choices=("auto", "c", "python"), default="auto",
-                        help="the core's implementation: c (the compiled twin), python (the reference, about 30x "
+                        help="the core's implementation: c (the compiled twin), python (the reference, about 25x "
                              "slower, the same bits), auto (c if it was built at install; the default)")
 
 

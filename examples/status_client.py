@@ -61,7 +61,11 @@ def main() -> int:
     base = f"{args.prefix}/{args.id}"
     selector, payload = {"status": (f"{base}/status", None), "config": (f"{base}/config", None),
                          "set": (f"{base}/config/set", json.dumps({"set": args.sets}))}[args.what]
-    session = open_session(args.connect)
+    try:
+        session = open_session(args.connect)
+    except zenoh.ZError as e:  # a client session needs its router or peer there: nothing answers
+        print(f"status_client: cannot reach {args.connect}: {e}", file=sys.stderr)
+        return 2
     try:
         ok, text = ask(session, selector, payload, args.timeout)
     except TimeoutError as e:

@@ -172,7 +172,7 @@ class ComponentConfig(Named):
     neighbours: list[str] = Field(default=[], description="ids whose interaction variables form P^{r,in}")
     core: Literal["auto", "c", "python"] = Field(
         default="auto", description="the control core's implementation: 'c' the compiled twin (the daemon refuses "
-                                    "to start without it), 'python' the reference (the same bits, about 30x the CPU "
+                                    "to start without it), 'python' the reference (the same bits, about 25x the CPU "
                                     "per step), 'auto' c if it was built at install")
     interaction_rate_hz: Annotated[float, Field(gt=0, le=20000)] = Field(
         default=1000.0, description="rate of this component's interaction messages on .../z, Hz (every "

@@ -400,7 +400,8 @@ def write_docs(path: str | Path, check: bool = False) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python3 -m schemas.generate", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python3 -m schemas.generate",
+                                 description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--docs", metavar="FILE.md", help="rewrite the generated region of this file "
                                                       "(docs/configuration.md)")
     ap.add_argument("--out", metavar="DIR", help="write every JSON Schema into DIR (schemas/json)")

@@ -108,8 +108,9 @@ def _from_index(data: list[LogData]) -> Ticks | None:
 def collect(parts: list, use_index: bool = True) -> Ticks:
     data = [read_log(p, use_index) for p in parts]
     if data[0].core is None:
-        raise ReplayError(f"{parts[0]}: no 'core' metadata record (not an energyctl log, or written before "
-                          "replay support)")
+        raise ReplayError(f"{parts[0]}: no 'core' metadata record: not a controller's log (replay takes the "
+                          "daemon's source-*.mcap or energyctl sim --out; a plant's or a demo's combined log holds no "
+                          "core to rebuild), or written before replay support")
     if all(d.ticks is not None for d in data):
         fast = _from_index(data)
         if fast is not None:

@@ -17,7 +17,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                       "channel, duration, the recorder's drops, the config it ran with, and the loop delay measured "
                       "from its commands. 'recover' reads a log cut off by a killed writer record by record up to "
                       "its last complete chunk and writes every readable record into FIXED.mcap, complete and "
-                      "indexed (the tick index included, so it replays fast). Both read any MCAP energyctl writes.")
+                      "indexed (with the attachments the log had: a cut-off log lost its tick index, so replay "
+                      "reads its JSON channels). Both read any MCAP energyctl writes.")
     lg.add_argument("action", choices=["info", "recover"], help="info: describe LOG; recover: rewrite LOG whole")
     lg.add_argument("log", metavar="LOG.mcap", help="the log to read")
     lg.add_argument("fixed", nargs="?", metavar="FIXED.mcap", help="with recover: the file to write")

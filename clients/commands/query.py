@@ -19,8 +19,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "'config' gets PREFIX/ID/config; with --set it sends them to PREFIX/ID/config/set, where they "
                     "are validated together and applied at the next tick (all or none; the answer is the new "
                     "config, or the error naming the field). 'interaction' reads the component's newest "
-                    "interaction message on PREFIX/ID/z. Exit 1 when no daemon answers within --timeout or it "
-                    "refuses.")
+                    "interaction message on PREFIX/ID/z (published only while the daemon steps: its plant "
+                    "running). --set with anything but 'config' is refused (exit 2). Exit 1 when no daemon answers "
+                    "within --timeout or it refuses.")
     qu.add_argument("what", choices=["status", "config", "interaction"], help="what to ask for")
     qu.add_argument("--component", required=True, metavar="ID", help="the component's id (its config's id)")
     qu.add_argument("--prefix", default="energyctl", help="key-expression prefix (default: %(default)s)")
@@ -35,6 +36,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from clients.query import QueryError, flatten, query, unit_of
+
+    if args.set and args.what != "config":
+        print(f"energyctl query: --set goes with 'config' (it changes the daemon); '{args.what}' only reads",
+              file=sys.stderr)
+        return 2
 
     try:
         ans = query(zenoh_from_args(args), args.prefix, args.component, args.what, args.set, args.timeout)

@@ -29,7 +29,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Cartesian grid of overrides on a base scenario, for each controller. "
                     "--preset robustness is the robustness grid: rates {5,10,20} kHz x delays "
                     "{0..3} x i0 {0.5,1,15,30} A x load {0.3,1.2,2.4} kW x noise {0,0.05}.")
-    w.add_argument("scenario", nargs="?", default="scenarios/paper-constant-load.toml")
+    w.add_argument("scenario", nargs="?", default="scenarios/paper-constant-load.toml",
+                   help="the base scenario the grid overrides (default: %(default)s)")
     w.add_argument("--preset", choices=["robustness"], help="start from a named grid")
     w.add_argument("--grid", action="append", metavar="key=v1,v2,...",
                    help="a grid axis; 'k1,k2=v1,v2' sets both keys to each value (repeatable)")
@@ -38,7 +39,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     w.add_argument("--jobs", type=int, default=None, help="processes (default: all cores)")
     w.add_argument("--rows", action="store_true", help="also print every run")
     w.add_argument("--csv", metavar="FILE", help="write every run to a CSV file")
-    w.add_argument("--json", action="store_true")
+    w.add_argument("--json", action="store_true", help="print the summary (and --rows) as JSON")
     w.add_argument("--quiet", action="store_true", help="no progress line on stderr")
     w.set_defaults(func=run)
     return w

@@ -495,3 +495,10 @@ def test_core_option_picks_the_implementation_and_the_bits_do_not_change(capsys)
         assert main(["replay", str(log), "--json", "--core", impl]) == 0
         res = json.loads(capsys.readouterr().out)
         assert res["identical"] and res["core"] == impl
+
+
+def test_query_refuses_set_with_anything_but_config(capsys):
+    """An operator asking for status must not retune the controller by a stray --set (refused before any
+    session is opened)."""
+    assert main(["query", "status", "--component", "source", "--set", "controller.K_per_s=5"]) == 2
+    assert "--set goes with 'config'" in capsys.readouterr().err
