@@ -13,8 +13,10 @@ each source's lines draw at its terminal, P_s = v_s i_out_s (the line-end power 
   (nominal - the buses' mean voltage over the window), which restores the bus voltage.
 
 P^{r,in}_s reaches source s through its link (``links``): delayed by whole samples, lost with a seeded
-probability (the source keeps the last value it got), or silent; a value older than ``stale_s`` makes the source
-fall back to its own terminal. Events trip or close breakers; a ``connect`` event asks the layer, which checks
+probability (the source keeps the last value it got), or silent. Each message carries the value and its filtered
+rate, and the source carries a late one forward by its age (at most ``layer.extrapolate_s``); one older than
+STALE_S makes the source fall back to its own terminal (``fallback_s`` and ``first_fallback_t_s`` say when).
+Events trip or close breakers; a ``connect`` event asks the layer, which checks
 the source's forecast Z^{r,out} against Z^{r,in} of the current window (``service.forecast``) and closes its
 breakers only if feasible. Pure: no clocks, no I/O; the same scenario and seed give the same bits.
 """
@@ -30,13 +32,15 @@ import numpy as np
 from schemas.network import NetworkScenario
 from service.core import effective_gain, make_core
 from service.core.feasibility import FeasibilityMonitor, incoming_range, load_box, tau_prime
-from service.core.source import ACTIVE, MODES, SourceController
+from service.core.interaction import outgoing_power_at
+from service.core.source import ACTIVE, FALLBACK, MODES, SourceController
 from service.forecast import forecast_outgoing
 from service.plant.network import NetworkPlant
 from service.plant.rlc import CommandSchedule, Sensor
 from service.sim import BAND_SETTLE, substeps
 
 STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal
+RATE_TAU_S = 1e-3  # the filter on P^{r,in}'s rate, which a late message is carried forward with (s)
 FORECAST_MARGIN = 0.05  # the layer's load box is widened by this fraction for the feasibility checks
 SOURCE_SIGNALS = ("i", "v", "u", "i_out", "P", "P_in", "du_dt", "mode", "v_ref")
 
@@ -98,7 +102,9 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         links.append((int(round(ln.delay_s / T)), ln.loss, ln.silent_from_s) if ln else (0, 0.0, None))
     link_rng = np.random.default_rng([net.seed, 0x11CC])
     inbox: list[deque] = [deque() for _ in range(ns)]  # (arrival sample, t sent, P_in)
-    got = [(-math.inf, 0.0)] * ns  # (t sent, P_in) of the newest P^{r,in} each source received
+    got = [(-math.inf, 0.0, 0.0)] * ns  # (t sent, P_in W, its rate W/s) of the newest P^{r,in} each source received
+    want_prev, want_rate = [0.0] * ns, [0.0] * ns
+    rate_alpha = T / (T + RATE_TAU_S)
     pending_events = sorted(net.events, key=lambda e: e.t_s)
     events: list[Event] = []
     bus_idx = [plant.node_index[b] for b in net.buses]
@@ -133,17 +139,24 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
             want = [-(shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
         else:
             want = [-P[j] for j in range(ns)]
+        # its rate (W/s), filtered: a message carries both, and a late one is carried forward by its age
+        for j in range(ns):
+            raw = (want[j] - want_prev[j]) / T if k else 0.0
+            want_rate[j] += rate_alpha * (raw - want_rate[j])
+            want_prev[j] = want[j]
         # the links, then each controller
         for j in range(ns):
             delay_k, loss, silent = links[j]
             if not (silent is not None and t >= silent) and not (loss and link_rng.random() < loss):
-                inbox[j].append((k + delay_k, t, want[j]))
+                inbox[j].append((k + delay_k, t, want[j], want_rate[j]))
             q = inbox[j]
             while q and q[0][0] <= k:
-                _, t_sent, value = q.popleft()
-                got[j] = (t_sent, value)
-            fresh = t - got[j][0] <= STALE_S
-            du, du_next = ctls[j].step(samples[j], got[j][1], 0.0, connected[j], fresh)
+                _, t_sent, value, rate = q.popleft()
+                got[j] = (t_sent, value, rate)
+            t_sent, value, rate = got[j]
+            fresh = t - t_sent <= STALE_S
+            P_in = outgoing_power_at(t, t_sent, value, rate, STALE_S, lay.extrapolate_s) if fresh else value
+            du, du_next = ctls[j].step(samples[j], P_in, 0.0, connected[j], fresh)
             if d:
                 delays[j].append((du, du_next))
                 du, du_next = delays[j].popleft()
@@ -154,7 +167,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
                 feas[j].update(t, est.P_r_out_port, est.Qdot_r_out_port)
             row = sig[names[j]]
             row["i"][k], row["v"][k], row["u"][k] = plant.i_s[j], plant.v_n[j], plant.u_s[j]
-            row["i_out"][k], row["P"][k], row["P_in"][k] = plant.terminal_current(j), P[j], got[j][1]
+            row["i_out"][k], row["P"][k], row["P_in"][k] = plant.terminal_current(j), P[j], P_in
             row["du_dt"][k], row["mode"][k], row["v_ref"][k] = r[j], ctls[j].mode, ctls[j].v_ref_V
         t_arr[k] = t
         for b, bi in zip(net.buses, bus_idx, strict=True):
@@ -309,6 +322,9 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls) -> dict
                                  else None),
             "terminal_dev_pct": float(np.max(np.abs(v[tail] - v_nom)) / v_nom * 100) if n else None,
             "mode_switches": ctls[names.index(s)].switches,
+            "fallback_s": float(np.count_nonzero(row["mode"] == FALLBACK) * T),
+            "first_fallback_t_s": (float(t[np.argmax(row["mode"] == FALLBACK)]) if (row["mode"] == FALLBACK).any()
+                                   else None),
             "final_mode": MODES[int(row["mode"][-1])] if n else None,
             "feasibility_violations": res.violations.get(s, 0),
         }

@@ -115,3 +115,29 @@ def test_a_feasible_source_plugs_in_gently_and_an_infeasible_one_is_refused():
     assert not plug["accepted"] and plug["reason"]
     assert res.metrics["sources"]["S3"]["final_mode"] == "idle"
     assert np.all(res.lines["L3"] == 0.0) and np.all(res.sources["S3"]["P"] == 0.0)
+
+
+@pytest.mark.parametrize("link", ["links.*.delay_s=0.001", "links.*.loss=0.1"])
+def test_interaction_variables_a_little_late_or_lost_keep_the_figures(link):
+    m = _run("two-source", link).metrics
+    assert not m["diverged"] and all(abs(s["sharing_error_pp"]) <= 2.0 for s in m["sources"].values())
+    assert m["buses"]["bus"]["ss_dev_pct"] <= 1.0 and m["buses"]["bus"]["v_min"] >= 75.5
+    step = m["events"][0]
+    assert step["bus_back_in_band_s"]["bus"] <= 0.150 and max(step["terminals_back_in_band_s"].values()) <= 0.030
+
+
+def test_interaction_variables_5_ms_late_keep_the_bus_above_70_v():
+    m = _run("two-source", "links.*.delay_s=0.005").metrics
+    assert not m["diverged"] and m["buses"]["bus"]["v_min"] >= 70.0
+
+
+@pytest.mark.parametrize("link", ["links.*.delay_s=0.02", "links.*.silent_from_s=0.4"])
+def test_late_or_silent_interaction_variables_make_the_sources_fall_back_without_diverging(link):
+    """20 ms late (older than the 10 ms a P^{r,in} stays usable) or silent from 0.4 s: each source follows its
+    own terminal, and the metrics say from when."""
+    m = _run("two-source", link).metrics
+    assert not m["diverged"]
+    for s in m["sources"].values():
+        assert s["fallback_s"] > 0.3 and s["first_fallback_t_s"] is not None
+    if "silent" in link:
+        assert all(s["first_fallback_t_s"] == pytest.approx(0.41, abs=1e-3) for s in m["sources"].values())
