@@ -113,6 +113,13 @@ def _middleware(args: argparse.Namespace) -> dict:
     return bench_middleware(n=args.n or 3000, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
 
 
+def _network(args: argparse.Namespace) -> dict:
+    from clients.bench.network import bench_network
+
+    return bench_network(seconds=args.seconds or 0.2, repeat=args.repeat,
+                         progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+
+
 class Bench(NamedTuple):
     run: Callable[[argparse.Namespace], dict]
     what: str  # what it measures, for --help
@@ -132,6 +139,8 @@ BENCHES: dict[str, Bench] = {
     "recovery": Bench(_recovery, "kill -9 plant / neighbour, time back to +-2 %"),
     "wake": Bench(_wake, "how late a 60 us timed wait ends at the kernel's default timer slack and at "
                          "timer_slack_ns's"),
+    "network": Bench(_network, "a network's offline cost per source per tick at 2, 4, 8 and 16 sources (radial "
+                               "feeders; --seconds simulated each, default 0.2)"),
     "middleware": Bench(_middleware, "the Zenoh and MCAP facts the daemon's design rests on, re-measured: put cost, "
                                      "one-way and round-trip latency, callback vs polled receive, query round trip, "
                                      "liveliness loss after kill -9, CPU per message, encoding cost, MCAP writes"),
@@ -159,7 +168,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "--set defaults, an 8 ms loop-delay schedule), with status queries at 100 Hz")
     b.add_argument("--seconds", type=float, default=None,
                    help="recorder: paced run length (default 10); replay: log length (default 10); realtime: each "
-                        "run (default 2)")
+                        "run (default 2); network: simulated time per size (default 0.2)")
     b.add_argument("-n", type=int, default=None,
                    help="latency: round trips per target (default 3000); tick: ticks (default 20000); wake: waits "
                         "per setting (default 20000); middleware: puts and pings (default 3000)")
@@ -182,7 +191,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--realtime", action="store_true",
                    help=f"recovery: wall-clock pacing with demo --realtime's settings ({DEMO_REALTIME_HZ / 1e3:g} kHz, "
                         f"{DEMO_REALTIME_DELAY}-sample schedule, {' '.join(DEMO_REALTIME_SETS)}) instead of lockstep")
-    b.add_argument("--repeat", type=int, default=3, help="sim, core: passes (default %(default)s)")
+    b.add_argument("--repeat", type=int, default=3, help="sim, core, network: passes (default %(default)s)")
     b.add_argument("--json", action="store_true", help="print one JSON object instead of key: value lines")
     b.set_defaults(func=run)
     return b

@@ -179,6 +179,11 @@ class NetworkPlant:
         for ln in net.lines.values():
             self.lines.extend((ln.R_ohm, ln.L_H, self.node_index[ln.a], self.node_index[ln.b], float(ln.closed)))
         self.i_l = array("d", [0.0] * len(net.lines))
+        # per node, (line, +1 if the line leaves the node at its a end, -1 at its b end): O(1) look-ups per node
+        self._ends: list[list[tuple[int, float]]] = [[] for _ in self.node_index]
+        for j, ln in enumerate(net.lines.values()):
+            self._ends[self.node_index[ln.a]].append((j, 1.0))
+            self._ends[self.node_index[ln.b]].append((j, -1.0))
         for name, s in net.sources.items():
             if not s.connected:
                 for j in self.lines_at(name):
@@ -246,9 +251,7 @@ class NetworkPlant:
     # ------------------------------------------------------------------ topology
     def lines_at(self, node: str) -> list[int]:
         """Indices of the lines with an end at this node."""
-        n = self.node_index[node]
-        return [j for j in range(len(self.i_l)) if n in (int(self.lines[LINE_W * j + 2]),
-                                                         int(self.lines[LINE_W * j + 3]))]
+        return [j for j, _ in self._ends[self.node_index[node]]]
 
     def closed(self, j: int) -> bool:
         return self.lines[LINE_W * j + 4] != 0.0
@@ -261,18 +264,14 @@ class NetworkPlant:
 
     def connected(self, source: str) -> bool:
         """Whether any of the source's lines is closed."""
-        return any(self.closed(j) for j in self.lines_at(source))
+        return any(self.lines[LINE_W * j + 4] != 0.0 for j, _ in self._ends[self.node_index[source]])
 
     # ------------------------------------------------------------------ what sensors see
     def terminal_current(self, s: int) -> float:
         """i_out of source s: the current leaving its terminal into its lines (A), each line oriented out of it."""
         out = 0.0
-        for j in range(len(self.i_l)):
-            o = LINE_W * j
-            if int(self.lines[o + 2]) == s:
-                out += self.i_l[j]
-            elif int(self.lines[o + 3]) == s:
-                out -= self.i_l[j]
+        for j, sign in self._ends[s]:
+            out += sign * self.i_l[j]
         return out
 
     def line_end_power(self, j: int, node: int) -> float:

@@ -141,3 +141,18 @@ def test_late_or_silent_interaction_variables_make_the_sources_fall_back_without
         assert s["fallback_s"] > 0.3 and s["first_fallback_t_s"] is not None
     if "silent" in link:
         assert all(s["first_fallback_t_s"] == pytest.approx(0.41, abs=1e-3) for s in m["sources"].values())
+
+
+def test_the_shipped_radial_16_is_the_bench_generator_s_and_regulates():
+    """scenarios/network/radial-16.toml is clients.bench.network.radial(16) written out (so the bench's scale
+    figures are the shipped scenario's); a short run regulates with every source sharing."""
+    import tomllib
+
+    from clients.bench.network import radial
+    from schemas.network import network_from_dict
+
+    shipped = network_from_dict(tomllib.loads((NET / "radial-16.toml").read_text()))
+    assert shipped == network_from_dict(radial(16))
+    m = _run("radial-16", "timing.duration_s=0.4").metrics
+    assert not m["diverged"] and all(abs(s["sharing_error_pp"]) <= 2.0 for s in m["sources"].values())
+    assert all(b["ss_dev_pct"] <= 1.0 for b in m["buses"].values())
