@@ -183,6 +183,9 @@ class NetworkScenario(Strict):
     lines: dict[str, LineConfig] = Field(default={}, description="the lines, by name")
     loads: dict[str, LoadAtBus] = Field(default={}, description="the loads, by name")
     events: list[EventConfig] = Field(default=[], description="timed breaker and connect events")
+    load_scale: Annotated[float, Field(gt=0, le=100)] = Field(
+        default=1.0, description="every load's power (and a resistive load's conductance) times this (a sweep's "
+                                 "load axis)")
     layer: LayerConfig = LayerConfig()
     links: dict[str, LinkConfig] = Field(default={}, description="interaction-message delay and loss, by receiving "
                                                                  "source name, or '*' for all")

@@ -144,6 +144,8 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
             raw = (want[j] - want_prev[j]) / T if k else 0.0
             want_rate[j] += rate_alpha * (raw - want_rate[j])
             want_prev[j] = want[j]
+        if k == 0 and net.start == "steady":  # a network already running: its messages from before t = 0 arrived
+            got = [(t, want[j], 0.0) for j in range(ns)]
         # the links, then each controller
         for j in range(ns):
             delay_k, loss, silent = links[j]
@@ -220,7 +222,7 @@ def _box(plant: NetworkPlant, net: NetworkScenario, k: int) -> tuple[float, floa
     lo = hi = dlo = dhi = 0.0
     for j, ld in enumerate(plant.load_list):
         if ld.type == "resistive":
-            p = net.nominal_v_V ** 2 / ld.R_ohm
+            p = net.load_scale * net.nominal_v_V ** 2 / ld.R_ohm
             lo, hi = lo + p, hi + p
         else:
             a, b, c, e = plant.profiles[j].range_over(t0, max(t1, t0 + 1e-9))

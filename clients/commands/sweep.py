@@ -14,6 +14,13 @@ from clients.options import add_scenario_set
 from clients.table import metrics_table, render
 from schemas.scenario import ScenarioError, parse_override
 
+NETWORK_SCENARIOS = ("two-source", "two-source-trip", "plug-in", "ring", "radial-16")
+NETWORK_GRID = {  # over each topology: loop delay x interaction delay x load x noise
+    "timing.delay_samples": [0, 1, 2, 3],
+    "links.*.delay_s": [0.0, 0.001, 0.005],
+    "load_scale": [0.5, 1.0, 2.0],
+    "sensor.noise_v_V,sensor.noise_i_A": [0.0, 0.05],
+}
 ROBUSTNESS_GRID = {
     "timing.control_rate_hz": [5000.0, 10000.0, 20000.0],
     "timing.delay_samples": [0, 1, 2, 3],
@@ -29,9 +36,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Cartesian grid of overrides on a base scenario, for each controller. "
                     "--preset robustness is the robustness grid: rates {5,10,20} kHz x delays "
                     "{0..3} x i0 {0.5,1,15,30} A x load {0.3,1.2,2.4} kW x noise {0,0.05}.")
-    w.add_argument("scenario", nargs="?", default="scenarios/paper-constant-load.toml",
-                   help="the base scenario the grid overrides (default: %(default)s)")
-    w.add_argument("--preset", choices=["robustness"], help="start from a named grid")
+    w.add_argument("scenario", nargs="*",
+                   help="the base scenario the grid overrides (default: scenarios/paper-constant-load.toml); with "
+                        "--preset network, the network scenarios (default: scenarios/network/{"
+                        + ",".join(NETWORK_SCENARIOS) + "}.toml)")
+    w.add_argument("--preset", choices=["robustness", "network"],
+                   help="start from a named grid: robustness (one source: rates x delays x initial currents x "
+                        "loads x noise) or network (each network scenario: loop delay {0..3} x interaction delay "
+                        "{0, 1, 5 ms} x load x {0.5, 1, 2} x noise {0, 0.05})")
     w.add_argument("--grid", action="append", metavar="key=v1,v2,...",
                    help="a grid axis; 'k1,k2=v1,v2' sets both keys to each value (repeatable)")
     w.add_argument("--controllers", default="fblc", help="comma list (default: %(default)s)")
@@ -46,7 +58,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def grid_from_args(args: argparse.Namespace) -> dict[str, list]:
-    grid: dict[str, list] = dict(ROBUSTNESS_GRID) if args.preset == "robustness" else {}
+    presets = {"robustness": ROBUSTNESS_GRID, "network": NETWORK_GRID}
+    grid: dict[str, list] = dict(presets.get(args.preset, {}))
     for g in args.grid or []:
         key, _, vals = g.partition("=")
         if not vals:
@@ -80,6 +93,11 @@ def write_csv(path: str, keys: list[str], labels: list, results: list[dict]) -> 
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.preset == "network":
+        return run_network_sweep(args)
+    if len(args.scenario) > 1:
+        raise ScenarioError("sweep: one base scenario (several only with --preset network)")
+    args.scenario = args.scenario[0] if args.scenario else "scenarios/paper-constant-load.toml"
     grid = grid_from_args(args)
     controllers = kinds(args.controllers)
     keys = list(grid)
@@ -115,3 +133,56 @@ def run(args: argparse.Namespace) -> int:
         print(metrics_table([([k, *map(str, c)], m) for (k, c), m in zip(labels, results, strict=True)],
                             ["controller", *keys]))
     return 0
+
+
+def run_network_sweep(args: argparse.Namespace) -> int:
+    """--preset network: the grid over each network scenario, one summary row per scenario."""
+    from pathlib import Path
+
+    from schemas.network import load_network
+
+    grid = grid_from_args(args)
+    keys = list(grid)
+    combos = list(itertools.product(*(grid[k] for k in keys)))
+    paths = args.scenario or [f"scenarios/network/{n}.toml" for n in NETWORK_SCENARIOS]
+    jobs, labels = [], []
+    for path in paths:
+        for combo in combos:
+            ovs = list(args.set or [])
+            for key, val in zip(keys, combo, strict=True):
+                ovs += [f"{sub}={json.dumps(val)}" for sub in key.split(",")]
+            jobs.append((path, ovs))
+            labels.append((Path(path).stem, combo))
+    for path in paths:  # validate before starting work
+        load_network(path, args.set or [])
+    sys.stderr.write(f"sweep: {len(combos)} cases x {len(paths)} networks = {len(jobs)} runs on "
+                     f"{args.jobs or os.cpu_count()} processes\n")
+    t0 = time.perf_counter()
+    results = parallel(jobs, args.jobs, progress=not args.quiet)
+    wall = time.perf_counter() - t0
+    if args.csv:
+        write_csv(args.csv, keys, labels, results)
+    if args.json:
+        print(json.dumps({"wall_s": wall, "grid": grid, "runs": [
+            {"network": n, **dict(zip(keys, c, strict=True)), **m}
+            for (n, c), m in zip(labels, results, strict=True)]}))
+        return 0
+    rows = []
+    for path in paths:
+        ms = [m for (n, _), m in zip(labels, results, strict=True) if n == Path(path).stem]
+        ok = [m for m in ms if not m["diverged"]]
+        backs = [m["worst_bus_back_s"] for m in ok]
+        rows.append([Path(path).stem, str(len(ms)), str(len(ms) - len(ok)),
+                     f"{max((m['worst_sharing_pp'] or 0.0 for m in ok), default=0.0):.2f}",
+                     f"{min((m['bus_min_V'] for m in ok), default=float('nan')):.2f}",
+                     "never" if None in backs else f"{max(backs, default=0.0) * 1e3:.0f}",
+                     str(sum(m["fallback_s"] > 0 for m in ok))])
+    print(render(["network", "runs", "diverged", "worst sharing pp", "lowest bus V", "slowest bus back ms",
+                  "runs w/ fallback"], rows))
+    print(f"{len(jobs)} runs in {wall:.1f} s")
+    if args.rows:
+        print(render(["network", *keys, *results[0].keys()],
+                     [[n, *map(str, c), *(str(v) for v in m.values())] for (n, c), m in zip(labels, results,
+                                                                                              strict=True)]))
+    return 0
+

@@ -130,22 +130,22 @@ def integrator(impl: str = "auto"):
 
 
 class SwitchedProfile:
-    """A load profile that draws nothing before ``from_s`` (s): a load switched in."""
+    """A load profile that draws nothing before ``from_s`` (s), a load switched in, scaled by ``scale``."""
 
-    def __init__(self, profile: Profile, from_s: float):
-        self.profile, self.from_s = profile, from_s
+    def __init__(self, profile: Profile, from_s: float, scale: float = 1.0):
+        self.profile, self.from_s, self.scale = profile, from_s, scale
 
     def value(self, t: float) -> float:
-        return self.profile.value(t) if t >= self.from_s else 0.0
+        return self.scale * self.profile.value(t) if t >= self.from_s else 0.0
 
     def rate(self, t: float) -> float:
-        return self.profile.rate(t) if t >= self.from_s else 0.0
+        return self.scale * self.profile.rate(t) if t >= self.from_s else 0.0
 
     def range_over(self, t0: float, t1: float) -> tuple[float, float, float, float]:
         """(min, max, min rate, max rate) over [t0, t1] (W, W/s)."""
         if t1 < self.from_s:
             return 0.0, 0.0, 0.0, 0.0
-        lo, hi, dlo, dhi = self.profile.range_over(max(t0, self.from_s), t1)
+        lo, hi, dlo, dhi = (self.scale * x for x in self.profile.range_over(max(t0, self.from_s), t1))
         if t0 < self.from_s:
             lo, hi, dlo, dhi = min(lo, 0.0), max(hi, 0.0), min(dlo, 0.0), max(dhi, 0.0)
         return lo, hi, dlo, dhi
@@ -190,11 +190,12 @@ class NetworkPlant:
                     self.lines[LINE_W * j + 4] = 0.0
         self.load_list = list(net.loads.values())
         self.load_names = list(net.loads)
-        self.profiles = [SwitchedProfile(Profile(ld, net.base_dir), ld.active_from_s) if ld.type == "cpl" else None
-                         for ld in self.load_list]
+        self.load_scale = net.load_scale
+        self.profiles = [SwitchedProfile(Profile(ld, net.base_dir), ld.active_from_s, net.load_scale)
+                         if ld.type == "cpl" else None for ld in self.load_list]
         self.loads = array("d")
         for ld in self.load_list:
-            G = 1.0 / ld.R_ohm if ld.type == "resistive" else 0.0
+            G = net.load_scale / ld.R_ohm if ld.type == "resistive" else 0.0
             self.loads.extend((self.node_index[ld.bus], CPL if ld.type == "cpl" else RESISTIVE, G, 0.0, ld.v_min_V))
         self.r = array("d", [0.0] * len(self.sources))
         self.t = 0.0
@@ -213,7 +214,7 @@ class NetworkPlant:
         for k, ld in enumerate(self.load_list):
             n = self.node_index[ld.bus]
             i = (self.profiles[k].value(0.0) / v_nom if ld.type == "cpl" else
-                 (v_nom / ld.R_ohm if ld.active_from_s <= 0.0 else 0.0))
+                 (self.load_scale * v_nom / ld.R_ohm if ld.active_from_s <= 0.0 else 0.0))
             inj[n] -= i
             demand += i
         weight = sum(shares[j] for j in on) or 1.0
@@ -286,7 +287,7 @@ class NetworkPlant:
         ld = self.load_list[k]
         v = self.v_n[self.node_index[ld.bus]]
         if ld.type == "resistive":
-            return v * v / ld.R_ohm if t >= ld.active_from_s else 0.0
+            return self.load_scale * v * v / ld.R_ohm if t >= ld.active_from_s else 0.0
         P = self.profiles[k].value(t)
         return P if v >= ld.v_min_V else P * v * v / (ld.v_min_V * ld.v_min_V)
 
@@ -303,7 +304,7 @@ class NetworkPlant:
                 self.loads[LOAD_W * k + 3] = (prof.value(t + T) - Pa) / n_sub
             else:  # resistive: switched in at the first period that starts at or after its time
                 ld = self.load_list[k]
-                self.loads[LOAD_W * k + 2] = 1.0 / ld.R_ohm if t >= ld.active_from_s else 0.0
+                self.loads[LOAD_W * k + 2] = self.load_scale / ld.R_ohm if t >= ld.active_from_s else 0.0
         self._steps(T / n_sub, n_sub, self.src, self.r, self.lines, self.node_C, self.loads, self.i_s, self.u_s,
                     self.i_l, self.v_n)
         self.t = t + T

@@ -502,3 +502,17 @@ def test_query_refuses_set_with_anything_but_config(capsys):
     session is opened)."""
     assert main(["query", "status", "--component", "source", "--set", "controller.K_per_s=5"]) == 2
     assert "--set goes with 'config'" in capsys.readouterr().err
+
+
+def test_sweep_network_preset_summarises_each_network(capsys):
+    """--preset network runs its grid over the network scenarios given (here narrowed by --grid to two cases) and
+    prints one row per network; --json gives every run."""
+    net = str(SCENARIOS / "network" / "two-source.toml")
+    narrow = ["--grid", "timing.delay_samples=2", "--grid", "links.*.delay_s=0.0,0.001", "--grid", "load_scale=1.0",
+              "--grid", "sensor.noise_v_V,sensor.noise_i_A=0.0", "--grid", "timing.duration_s=0.2", "--quiet"]
+    assert main(["sweep", "--preset", "network", net, *narrow, "--jobs", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "two-source" in out and "2 runs" in out
+    assert main(["sweep", "--preset", "network", net, *narrow, "--jobs", "1", "--json"]) == 0
+    runs = json.loads(capsys.readouterr().out)["runs"]
+    assert len(runs) == 2 and not any(r["diverged"] for r in runs) and all(r["worst_sharing_pp"] < 2 for r in runs)
