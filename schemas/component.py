@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -21,6 +20,7 @@ from schemas.scenario import (
     Strict,
     apply_overrides,
     format_validation_error,
+    read_toml,
 )
 
 _ID = re.compile(r"^[A-Za-z0-9_\-]+$")
@@ -290,12 +290,7 @@ def load_config(kind: type[BaseModel], path: str | Path, overrides: list[str] | 
 def _read_toml(p: Path, kind: type[BaseModel], seen: list[Path]) -> dict:
     if p.resolve() in seen:
         raise ScenarioError(f"config {p}: 'extends' loops back to itself ({' -> '.join(map(str, seen))})")
-    try:
-        data = tomllib.loads(p.read_text())
-    except OSError as e:
-        raise ScenarioError(f"cannot read config {p}: {e.strerror}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ScenarioError(f"config {p} is not valid TOML: {e}") from None
+    data = read_toml(p, "config")
     own_base_dir = "base_dir" in data
     if "base_dir" in kind.model_fields:
         data.setdefault("base_dir", str(p.parent.resolve()))

@@ -15,7 +15,6 @@ P^{r,in} is the power its lines draw at its terminal, oriented out of the source
 from __future__ import annotations
 
 import re
-import tomllib
 from collections import deque
 from pathlib import Path
 from typing import Annotated, Literal
@@ -34,6 +33,7 @@ from schemas.scenario import (
     Strict,
     apply_overrides,
     format_validation_error,
+    read_toml,
 )
 
 NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
@@ -273,11 +273,6 @@ def is_network(data: dict) -> bool:
 def load_network(path: str | Path, overrides: list[str] | None = None) -> NetworkScenario:
     """Read a TOML network scenario, apply ``dotted.key=value`` overrides, validate."""
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except OSError as e:
-        raise ScenarioError(f"cannot read scenario {p}: {e.strerror}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ScenarioError(f"scenario {p} is not valid TOML: {e}") from None
+    data = read_toml(p, "scenario")
     data.setdefault("base_dir", str(p.parent.resolve()))
     return network_from_dict(data, overrides, str(p))

@@ -329,17 +329,22 @@ def scenario_from_dict(data: dict, overrides: list[str] | None = None, source: s
         raise ScenarioError(format_validation_error(err, source)) from None
 
 
-def load_scenario(path: str | Path, overrides: list[str] | None = None) -> Scenario:
-    """Read a TOML scenario file, apply ``dotted.key=value`` overrides, validate."""
-    p = Path(path)
+def read_toml(p: Path, what: str) -> dict:
+    """The TOML file's table; a file that cannot be read or parsed is a ScenarioError naming it as ``what``."""
     try:
         text = p.read_text()
     except OSError as e:
-        raise ScenarioError(f"cannot read scenario {p}: {e.strerror}") from None
+        raise ScenarioError(f"cannot read {what} {p}: {e.strerror}") from None
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise ScenarioError(f"scenario {p} is not valid TOML: {e}") from None
+        raise ScenarioError(f"{what} {p} is not valid TOML: {e}") from None
+
+
+def load_scenario(path: str | Path, overrides: list[str] | None = None) -> Scenario:
+    """Read a TOML scenario file, apply ``dotted.key=value`` overrides, validate."""
+    p = Path(path)
+    data = read_toml(p, "scenario")
     data.setdefault("base_dir", str(p.parent.resolve()))
     return scenario_from_dict(data, overrides, str(p))
 

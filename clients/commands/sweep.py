@@ -82,14 +82,26 @@ def summary_row(kind: str, ms: list[dict]) -> list[str]:
             str(sum(m["feasibility_violations"] > 0 for m in ms))]
 
 
-def write_csv(path: str, keys: list[str], labels: list, results: list[dict]) -> None:
+def write_csv(path: str, keys: list[str], labels: list, results: list[dict], label: str = "controller") -> None:
     import csv
 
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["controller", *(k.replace(",", "+") for k in keys), *results[0].keys()])
+        w.writerow([label, *(k.replace(",", "+") for k in keys), *results[0].keys()])
         for (kind, combo), m in zip(labels, results, strict=True):
             w.writerow([kind, *combo, *("" if v is None else v for v in m.values())])
+
+
+def write_runs(args: argparse.Namespace, wall: float, grid: dict, keys: list[str], labels: list, results: list[dict],
+               label: str) -> bool:
+    """Every run to --csv if asked, and with --json every run to stdout (True: printed, nothing else to print).
+    labels: (what the run is of, e.g. its controller or network; its grid values) per run."""
+    if args.csv:
+        write_csv(args.csv, keys, labels, results, label)
+    if args.json:
+        print(json.dumps({"wall_s": wall, "grid": grid, "runs": [
+            {label: k, **dict(zip(keys, c, strict=True)), **m} for (k, c), m in zip(labels, results, strict=True)]}))
+    return bool(args.json)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -119,12 +131,7 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     rows = [summary_row(kind, [m for (k, _), m in zip(labels, results, strict=True) if k == kind])
             for kind in controllers]
-    if args.csv:
-        write_csv(args.csv, keys, labels, results)
-    if args.json:
-        print(json.dumps({"wall_s": wall, "grid": grid, "runs": [
-            {"controller": k, **dict(zip(keys, c, strict=True)), **m}
-            for (k, c), m in zip(labels, results, strict=True)]}))
+    if write_runs(args, wall, grid, keys, labels, results, "controller"):
         return 0
     print(render(["controller", "runs", "diverged", "not settled", "worst settle ms", "median settle ms",
                   "worst hold %", "runs w/ feas viol"], rows))
@@ -160,12 +167,7 @@ def run_network_sweep(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     results = parallel(jobs, args.jobs, progress=not args.quiet)
     wall = time.perf_counter() - t0
-    if args.csv:
-        write_csv(args.csv, keys, labels, results)
-    if args.json:
-        print(json.dumps({"wall_s": wall, "grid": grid, "runs": [
-            {"network": n, **dict(zip(keys, c, strict=True)), **m}
-            for (n, c), m in zip(labels, results, strict=True)]}))
+    if write_runs(args, wall, grid, keys, labels, results, "network"):
         return 0
     rows = []
     for path in paths:

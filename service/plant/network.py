@@ -24,6 +24,7 @@ from array import array
 
 from schemas.network import NetworkScenario
 from service.plant.profiles import Profile
+from service.plant.rlc import pick_twin
 
 CPL, RESISTIVE = 0.0, 1.0
 SRC_W, LINE_W, LOAD_W = 4, 5, 5  # doubles per row: source R, L, u_min, u_max; line R, L, a, b, closed;
@@ -116,17 +117,7 @@ def _derivatives(kf: float, src, lines, node_C, loads, u, xs, xl, xv, ds, dl, dv
 def integrator(impl: str = "auto"):
     """The network integrator: the compiled twin for "c" (ImportError if not built), the reference for "python",
     and for "auto" the compiled one when it was built."""
-    if impl not in ("auto", "c", "python"):
-        raise ValueError(f"plant implementation {impl!r}: expected auto, c or python")
-    if impl == "python":
-        return steps
-    try:
-        from service._kernel import network_steps
-    except ImportError as e:
-        if impl == "c":
-            raise ImportError(f"the compiled network integrator (service._kernel) is not built: {e}") from e
-        return steps
-    return network_steps
+    return pick_twin(impl, steps, "network_steps", "network integrator")
 
 
 class SwitchedProfile:

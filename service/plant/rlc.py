@@ -126,17 +126,23 @@ def rk4_steps(R: float, L: float, C: float, vmin: float, umin: float, umax: floa
 def integrator(impl: str = "auto"):
     """The RK4 integrator: the compiled twin for "c" (ImportError if not built), the Python reference for
     "python", and for "auto" the compiled one when it was built."""
+    return pick_twin(impl, rk4_steps, "plant_steps", "plant integrator")
+
+
+def pick_twin(impl: str, reference, compiled_name: str, what: str):
+    """``reference`` (a Python function) or its compiled twin ``service._kernel.<compiled_name>``: "python" the
+    reference, "c" the twin (ImportError naming ``what`` if it was not built), "auto" the twin when built."""
     if impl not in ("auto", "c", "python"):
         raise ValueError(f"plant implementation {impl!r}: expected auto, c or python")
     if impl == "python":
-        return rk4_steps
+        return reference
     try:
-        from service._kernel import plant_steps as compiled
+        from service import _kernel
     except ImportError as e:
         if impl == "c":
-            raise ImportError(f"the compiled plant integrator (service._kernel) is not built: {e}") from e
-        return rk4_steps
-    return compiled
+            raise ImportError(f"the compiled {what} (service._kernel) is not built: {e}") from e
+        return reference
+    return getattr(_kernel, compiled_name)
 
 
 class CommandSchedule:
