@@ -29,6 +29,9 @@ def is_network_file(path: str) -> bool:
 
 def load(path: str, overrides: list[str]):
     """The scenario at path with the --set overrides applied (ScenarioError names a bad field)."""
+    if is_network_file(path):
+        raise ScenarioError(f"{path} is a network scenario (kind = \"network\"): energyctl sim runs it, and "
+                            "energyctl sweep --preset network sweeps it")
     return load_scenario(path, overrides)
 
 
