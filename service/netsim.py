@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schemas.network import NetworkScenario
-from service.core import effective_gain, make_core
+from service.core import core_metadata, effective_gain, make_core
 from service.core.feasibility import FeasibilityMonitor, incoming_range, load_box, tau_prime
 from service.core.interaction import outgoing_power_at
-from service.core.source import ACTIVE, FALLBACK, MODES, SourceController
+from service.core.source import ACTIVE, FALLBACK, IDLE, MODES, SourceController
 from service.forecast import forecast_outgoing
 from service.plant.network import NetworkPlant
 from service.plant.rlc import CommandSchedule, Sensor
@@ -42,7 +42,12 @@ from service.sim import BAND_SETTLE, substeps
 STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal
 RATE_TAU_S = 1e-3  # the filter on P^{r,in}'s rate, which a late message is carried forward with (s)
 FORECAST_MARGIN = 0.05  # the layer's load box is widened by this fraction for the feasibility checks
-SOURCE_SIGNALS = ("i", "v", "u", "i_out", "P", "P_in", "du_dt", "mode", "v_ref")
+# per source and tick: the true state (i, v, u, i_out), the power its lines draw as measured (P), the P^{r,in} it
+# followed, the rate its plant applied (du_dt), its mode and v_ref; and what its controller saw and answered (the
+# sample meas_*, whether the core stepped, the answer cmd_du / cmd_du_next before the loop delay), which a log
+# needs for replay
+SOURCE_SIGNALS = ("i", "v", "u", "i_out", "P", "P_in", "du_dt", "mode", "v_ref",
+                  "meas_i", "meas_v", "meas_u", "meas_i_load", "stepped", "cmd_du", "cmd_du_next")
 
 
 @dataclass
@@ -66,6 +71,8 @@ class NetworkResult:
     events: list[Event]
     metrics: dict
     violations: dict[str, int] = field(default_factory=dict)  # feasibility excursions per source
+    config_events: dict[str, list] = field(default_factory=dict)  # per source: (t, seq, controller JSON)
+    cores: dict[str, str] = field(default_factory=dict)  # per source: its core's metadata JSON (core_metadata)
 
 
 def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bool = True) -> NetworkResult:
@@ -95,6 +102,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         plant.start_steady(shares, net.nominal_v_V)
     v_ref0 = [s.controller.v_ref_V for s in cfgs]
     win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
+    config_events: dict[str, list] = {name: [] for name in names}  # (t, seq applied before, controller JSON)
     # links: per receiving source, (delay in samples, loss, silent from)
     links = []
     for name in names:
@@ -159,6 +167,11 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
             fresh = t - t_sent <= STALE_S
             P_in = outgoing_power_at(t, t_sent, value, rate, STALE_S, lay.extrapolate_s) if fresh else value
             du, du_next = ctls[j].step(samples[j], P_in, 0.0, connected[j], fresh)
+            row = sig[names[j]]
+            s = samples[j]
+            row["meas_i"][k], row["meas_v"][k], row["meas_u"][k], row["meas_i_load"][k] = s.i, s.v, s.u, s.i_load
+            row["stepped"][k], row["cmd_du"][k], row["cmd_du_next"][k] = ctls[j].mode != IDLE, du, du_next
+            row["P_in"][k] = ctls[j].P_in_used
             if d:
                 delays[j].append((du, du_next))
                 du, du_next = delays[j].popleft()
@@ -167,9 +180,8 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
             est = ctls[j].core.out.est
             if ctls[j].mode == ACTIVE and est is not None and t >= 5.0 * cfgs[j].controller.deriv_tau_s:
                 feas[j].update(t, est.P_r_out_port, est.Qdot_r_out_port)
-            row = sig[names[j]]
             row["i"][k], row["v"][k], row["u"][k] = plant.i_s[j], plant.v_n[j], plant.u_s[j]
-            row["i_out"][k], row["P"][k], row["P_in"][k] = plant.terminal_current(j), P[j], P_in
+            row["i_out"][k], row["P"][k] = plant.terminal_current(j), P[j]
             row["du_dt"][k], row["mode"][k], row["v_ref"][k] = r[j], ctls[j].mode, ctls[j].v_ref_V
         t_arr[k] = t
         for b, bi in zip(net.buses, bus_idx, strict=True):
@@ -194,7 +206,9 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
                     else:
                         target = ctls[j].v_ref_V + correction
                     lo, hi = v_ref0[j] - lay.v_ref_max_offset_V, v_ref0[j] + lay.v_ref_max_offset_V
-                    ctls[j].set_v_ref(min(max(target, lo), hi))
+                    new = ctls[j].set_v_ref(min(max(target, lo), hi))
+                    if new is not None:  # applied before the next tick: a log's config event
+                        config_events[names[j]].append((t, k + 1, new.model_dump_json()))
             win_sum, win_n = 0.0, 0
             win_term = [0.0] * ns
             _set_feasibility_ranges(plant, net, feas, taus, win_k, shares)
@@ -206,7 +220,9 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     sig = {name: {k: a[:n] for k, a in row.items()} for name, row in sig.items()}
     res = NetworkResult(net, t_arr[:n], sig, {b: a[:n] for b, a in bus_v.items()},
                         {ln: a[:n] for ln, a in line_i.items()}, events, {},
-                        {name: f.count for name, f in zip(names, feas, strict=True)})
+                        {name: f.count for name, f in zip(names, feas, strict=True)}, config_events,
+                        {name: core_metadata(cfgs[j].controller, cfgs[j].model_params(), T, ctls[j].core.d)
+                         for j, name in enumerate(names)})
     for j, prof in enumerate(plant.profiles):  # load steps are events of the metrics too
         if prof is not None:
             res.events += [Event(ts, "load", plant.load_names[j]) for ts in prof.step_times() if ts < tm.duration_s]

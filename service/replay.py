@@ -30,7 +30,7 @@ import numpy as np
 from schemas.codec import CMD, MEAS
 from schemas.scenario import ControllerConfig, apply_overrides, scenario_from_dict
 from service.core import make_core
-from service.logio.reader import SEQ_BITS, LogData, LogError, read_log
+from service.logio.reader import SEQ_BITS, LogData, LogError, component_names, read_log
 
 ReplayError = LogError  # what replay raises on a log it cannot use
 
@@ -105,8 +105,14 @@ def _from_index(data: list[LogData]) -> Ticks | None:
                  [d.source for d in data])
 
 
-def collect(parts: list, use_index: bool = True) -> Ticks:
-    data = [read_log(p, use_index) for p in parts]
+def collect(parts: list, use_index: bool = True, component: str | None = None) -> Ticks:
+    data = [read_log(p, use_index, component) for p in parts]
+    if data[0].core is None and component is None and (names := component_names(parts[0])):
+        raise ReplayError(f"{parts[0]}: a network log: name the component to replay (--component "
+                          f"{' | '.join(names)})")
+    if data[0].core is None and component is not None:
+        raise ReplayError(f"{parts[0]}: no component {component!r} (it has: "
+                          f"{', '.join(component_names(parts[0])) or 'none'})")
     if data[0].core is None:
         raise ReplayError(f"{parts[0]}: no 'core' metadata record: not a controller's log (replay takes the "
                           "daemon's source-*.mcap or energyctl sim --out; a plant's or a demo's combined log holds no "
@@ -145,13 +151,14 @@ def collect(parts: list, use_index: bool = True) -> Ticks:
 
 
 def replay(path: str | Path | list, overrides: list[str] | None = None, controller: str | None = None,
-           out: str | None = None, progress: bool = True, use_index: bool = True, impl: str = "auto") -> dict:
+           out: str | None = None, progress: bool = True, use_index: bool = True, impl: str = "auto",
+           component: str | None = None) -> dict:
     """Replay one log, or the parts of a rotated log in order (one core across all of them). use_index=False
     reads the JSON channels even where a tick index exists (the messages Foxglove shows). impl: the core's
-    implementation (service.core.make_core)."""
+    implementation (service.core.make_core). component: in a network log, the source to replay."""
     t0 = time.perf_counter()
     parts = [path] if isinstance(path, str | Path) else list(path)
-    tk = collect(parts, use_index)
+    tk = collect(parts, use_index, component)
     path = parts[0] if len(parts) == 1 else ", ".join(map(str, parts))
     ovs = list(overrides or [])
     if controller:
@@ -167,6 +174,11 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     epochs = tk.keys >> SEQ_BITS
     # stretches between a restart (reset before the tick) or a config change (applied before it)
     cuts = set(np.nonzero(np.diff(epochs))[0] + 1) | {0, n}
+    # samples answered outside the law with a rate of their own (a network source's idle mode): the core is told
+    # that rate (core.hold(seq, du_dt)), one by one; a daemon's holds are 0 and stay in the batches
+    held = np.nonzero((tk.rows[:, 8] == 0) & tk.has_cmd & (tk.logged != 0))[0] if n else np.zeros(0, dtype=int)
+    held_set = set(held.tolist())
+    cuts |= held_set | {j + 1 for j in held_set}
     cfg_at = {}
     if not what_if:
         for k, cfgs in tk.cfg_events.items():
@@ -183,6 +195,10 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
             core.reset()
         for c in cfg_at.get(a, []):
             core.set_gains(ControllerConfig.model_validate(c))
+        if a in held_set:
+            core.hold(int(tk.rows[a, 0]), float(tk.logged[a]))
+            du[a], du_next[a] = tk.logged[a], 0.0
+            continue
         core.run_batch(tk.rows[a:b], du[a:b], du_next[a:b])
         if show:
             sys.stderr.write(f"\rreplay {100 * b // n:3d} %")

@@ -25,6 +25,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     rp.add_argument("--no-index", action="store_true",
                     help="read the JSON channels (what Foxglove shows) even where the log has a tick index")
     rp.add_argument("--json", action="store_true")
+    rp.add_argument("--component", metavar="NAME", help="in a network log (energyctl sim NETWORK --out), the source to "
+                                                       "replay")
     add_core(rp)
     rp.set_defaults(func=run)
     return rp
@@ -37,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
         raise ScenarioError("replay: a what-if (--set/--controller) needs --out NEW.mcap")
     try:
         res = replay(args.log, args.set, args.controller, args.out, progress=not args.json,
-                     use_index=not args.no_index, impl=args.core)
+                     use_index=not args.no_index, impl=args.core,
+                     component=args.component)
     except (ReplayError, OSError) as e:
         print(f"energyctl replay: {e}", file=sys.stderr)
         return 2

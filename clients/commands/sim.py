@@ -86,13 +86,15 @@ def run_network_scenario(args: argparse.Namespace) -> int:
     if args.controller:
         raise ScenarioError("--controller: a network has a controller per source; use --set "
                             "sources.NAME.controller.kind=...")
-    if args.out:
-        raise ScenarioError("--out: MCAP output of network runs is not written yet")
     net = load_network(args.scenario, args.set or [])
     t0 = time.perf_counter()
     res = run_network(net, impl=args.core)
     wall = time.perf_counter() - t0
     m = {**res.metrics, "wall_s": wall}
+    if args.out:
+        from service.logio.mcapfile import write_network_mcap
+
+        write_network_mcap(args.out, res)
     if args.json:
         print(json.dumps({"scenario": net.name, **m}))
         return 0
@@ -102,4 +104,7 @@ def run_network_scenario(args: argparse.Namespace) -> int:
           f"{net.timing.duration_s:g} s simulated in {wall:.2f} s"
           + (f"; DIVERGED at {m['diverged_at_s']:.4f} s" if m["diverged"] else ""))
     print(network_tables(m))
+    if args.out:
+        print(f"wrote {args.out}: replay a source with energyctl replay {args.out} --component "
+              f"{' | '.join(net.sources)}")
     return 0

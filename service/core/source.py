@@ -38,17 +38,22 @@ class SourceController:
         self.droop_ohm, self.idle_tau_s = droop_ohm, idle_tau_s
         self.mode = IDLE
         self.idle = True
+        self.P_in_used = 0.0  # the P^{r,in} the last step gave the core (W; its own terminal's in fallback)
         self.switches = 0  # entries into and exits from idle
 
     @property
     def v_ref_V(self) -> float:
         return self.core.cfg.v_ref_V
 
-    def set_v_ref(self, v_ref_V: float) -> None:
-        """Move the voltage reference (the interconnection layer's per-window correction), between two steps."""
+    def set_v_ref(self, v_ref_V: float) -> ControllerConfig | None:
+        """Move the voltage reference (the interconnection layer's per-window correction), between two steps; the
+        new controller config when it changed (a log records it, so that replay applies it at the same tick)."""
         cfg: ControllerConfig = self.core.cfg
-        if v_ref_V != cfg.v_ref_V:
-            self.core.set_gains(cfg.model_copy(update={"v_ref_V": v_ref_V}))
+        if v_ref_V == cfg.v_ref_V:
+            return None
+        new = cfg.model_copy(update={"v_ref_V": v_ref_V})
+        self.core.set_gains(new)
+        return new
 
     def step(self, s: Sample, P_in_W: float, P_in_dot_W_per_s: float, connected: bool, fresh: bool
              ) -> tuple[float, float]:
@@ -76,5 +81,6 @@ class SourceController:
             self.core.hold(s.seq, r)
             return r, 0.0
         self.mode = ACTIVE if fresh else FALLBACK
+        self.P_in_used = P_in_W
         out = self.core.step(s, Incoming(P_in_W, P_in_dot_W_per_s))
         return out.du_dt, out.du_dt_next

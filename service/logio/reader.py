@@ -98,12 +98,14 @@ def _string(data: bytes, off: int) -> tuple[str, int]:
     return bytes(data[off + 4:off + 4 + k]).decode(), off + 4 + k
 
 
-def _core_meta(data: bytes) -> dict | None:
-    """The 'core' metadata record (name, then a string map {"json": ...})."""
+def _core_meta(data: bytes, component: str | None = None) -> dict | None:
+    """The 'core' metadata record (name, then a string map {"json": ...}); a network log's component has its own,
+    'core:NAME'."""
+    want = "core" if component is None else f"core:{component}"
     for op, c, _ln in _top_level(data):
         if op == 0x0C:
             name, c = _string(data, c)
-            if name != "core":
+            if name != want:
                 continue
             end = c + 4 + struct.unpack_from("<I", data, c)[0]
             c += 4
@@ -179,16 +181,36 @@ def _channel_messages(data: bytes, cids: set[int]) -> list[bytes]:
     return out
 
 
-def _read_fast(path: str | Path, data=None) -> LogData:
+def _mine(topic: str, component: str | None) -> bool:
+    """A channel of the component (a network log: .../COMPONENT/leaf), or any channel when none is named."""
+    return component is None or topic.rsplit("/", 2)[-2:-1] == [component]
+
+
+def component_names(path: str | Path) -> list[str]:
+    """The components of a network log (its 'core:NAME' records), in file order; [] for a one-component log."""
+    data = _read_bytes(path)
+    out = []
+    for op, c, _ln in _top_level(data):
+        if op == 0x0C:
+            name = _string(data, c)[0]
+            if name.startswith("core:"):
+                out.append(name[5:])
+    return out
+
+
+def _read_fast(path: str | Path, data=None, component: str | None = None) -> LogData:
     out = LogData()
     table = bytearray(b"\xff" * 65536)
     events_ids: set[int] = set()
     keys = tuple(tuple(("" if k in NEEDED[c] else "~").encode() + k.encode() for k in ks) for c, ks in enumerate(KEYS))
     data = _read_bytes(path) if data is None else data
-    out.core = _core_meta(data)
+    out.core = _core_meta(data, component)
     for recs in _records(path, data):  # the top level first, then each chunk
         for cid, topic in _mcapscan.channels(recs):
-            leaf = topic.decode().rsplit("/", 1)[-1]
+            name = topic.decode()
+            if not _mine(name, component):
+                continue
+            leaf = name.rsplit("/", 1)[-1]
             if leaf in LEAVES:
                 table[cid] = LEAVES.index(leaf)
             elif leaf == "events":
@@ -200,8 +222,8 @@ def _read_fast(path: str | Path, data=None) -> LogData:
     return out
 
 
-def _read_general(path: str | Path, data=None) -> LogData:
-    out = LogData(core=_core_meta(_read_bytes(path) if data is None else data))
+def _read_general(path: str | Path, data=None, component: str | None = None) -> LogData:
+    out = LogData(core=_core_meta(_read_bytes(path) if data is None else data, component))
     rows: list[list[float]] = []
     events: list[bytes] = []
     # records in file order, chunks expanded: works on a file without summary too; a cut-off record ends it, a
@@ -210,7 +232,10 @@ def _read_general(path: str | Path, data=None) -> LogData:
     for rec in s:
         if not isinstance(rec, Message):
             continue
-        leaf = s.topic(rec).rsplit("/", 1)[-1]
+        topic = s.topic(rec)
+        if not _mine(topic, component):
+            continue
+        leaf = topic.rsplit("/", 1)[-1]
         if leaf in LEAVES:
             code = LEAVES.index(leaf)
             d = json.loads(rec.data)
@@ -268,19 +293,20 @@ def _read_index(path: str | Path, data: bytes) -> LogData | None:
     return out
 
 
-def read_log(path: str | Path, use_index: bool = True) -> LogData:
+def read_log(path: str | Path, use_index: bool = True, component: str | None = None) -> LogData:
     """A log's replay inputs: from its tick index if it has a complete one, else by the fast scanner if built
-    (and the log is the recorder's flat JSON), else by the general reader."""
+    (and the log is the recorder's flat JSON), else by the general reader. component: in a network log, the one
+    source whose channels (.../COMPONENT/meas, z_in, cmd, events) and core record (core:COMPONENT) to read."""
     data = _read_bytes(path)
-    got = _read_index(path, data) if use_index else None
+    got = _read_index(path, data) if use_index and component is None else None
     if got is not None:
         return got
     if _mcapscan is not None:
         try:
-            return _read_fast(path, data)
+            return _read_fast(path, data, component)
         except ValueError:
             pass  # not our templates (hand-made or foreign log): the general reader copes
-    return _read_general(path, data)
+    return _read_general(path, data, component)
 
 
 class Stream:

@@ -156,3 +156,22 @@ def test_the_shipped_radial_16_is_the_bench_generator_s_and_regulates():
     m = _run("radial-16", "timing.duration_s=0.4").metrics
     assert not m["diverged"] and all(abs(s["sharing_error_pp"]) <= 2.0 for s in m["sources"].values())
     assert all(b["ss_dev_pct"] <= 1.0 for b in m["buses"].values())
+
+
+def test_each_source_of_a_network_log_replays_identical(tmp_path):
+    """energyctl sim NETWORK --out writes one log with each source's channels under its own prefix; replaying one
+    source rebuilds its core from its own core record and reproduces every command it answered, through the
+    layer's v_ref moves (config events) and its idle periods (holds with a rate): S3 idles until it plugs in."""
+    from clients.cli import main
+
+    out = tmp_path / "plug-in.mcap"
+    assert main(["sim", str(NET / "plug-in.toml"), "--out", str(out)]) == 0
+    from service.logio.reader import component_names
+    from service.replay import replay
+
+    assert component_names(out) == ["S1", "S2", "S3"]
+    for name in ("S1", "S3"):
+        r = replay(out, progress=False, component=name)
+        assert r["identical"] and r["compared"] == 12000, (name, r["first_divergence"])
+    with pytest.raises(Exception, match="name the component"):
+        replay(out, progress=False)
