@@ -47,6 +47,8 @@ def load_series(path: str | Path) -> dict:
             break
     if "meas" not in series and "plant" not in series:
         raise ReportError(f"{path}: no measurement or plant channel")
+    if meta.get("scenario", {}).get("kind") == "network":  # v_ref lives per source there
+        v_ref = meta["scenario"].get("nominal_v_V", v_ref)
     return {"path": str(path), "name": Path(path).stem, "series": series, "meta": meta, "v_ref": v_ref,
             "complete": s["complete"], "forecasts": forecasts}
 
@@ -113,6 +115,10 @@ def report(paths: list[str], out_dir: str) -> dict:
     logs = [load_series(p) for p in paths]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if any(is_network_log(lg) for lg in logs):
+        if len(logs) > 1:
+            raise ReportError("a network log is reported on its own")
+        return _network_summary(logs[0], out, network_report(logs[0], out, plt)["figures"])
     figs = []
     n_bands: dict[str, int] = {}
 
@@ -187,6 +193,17 @@ def report(paths: list[str], out_dir: str) -> dict:
             "feasibility_windows": n_bands}
 
 
+def _network_summary(log: dict, out: Path, figs: list[str]) -> dict:
+    from clients.table import network_tables
+
+    m = log["meta"].get("metrics") or {}
+    lines = ["# energyctl report", "", f"- `{log['path']}`", "", "```", network_tables(m) if m else "no metrics",
+             "```", "", *(f"![{f}]({f})" for f in figs), ""]
+    (out / "summary.md").write_text("\n".join(lines))
+    return {"out": str(out), "figures": figs, "summary": str(out / "summary.md"), "metrics": m,
+            "feasibility_windows": {}}
+
+
 def _finish(plt, fig, ax, ylabels: tuple[str, ...], title: str, path: Path) -> str:
     """Labels, grid, legend, title; save as PNG and close. Returns the file name."""
     for a, lab in zip(ax, ylabels, strict=True):
@@ -214,3 +231,115 @@ def _logged_metrics(m: dict | None) -> dict | None:
     if isinstance(m, dict) and isinstance(m.get("metrics"), dict):
         return m["metrics"]
     return m
+
+
+# ------------------------------------------------------------------------------------------------ network logs
+
+def is_network_log(log: dict) -> bool:
+    return log["meta"].get("scenario", {}).get("kind") == "network"
+
+
+def network_series(path: str | Path) -> dict:
+    """A network log (energyctl sim NETWORK --out) by element: element -> leaf -> field -> array."""
+    s = scan(path, keep_messages=True)
+    cols: dict[str, dict[str, dict[str, list]]] = {}
+    events, ranges = [], {}
+    for m in s["messages"]:
+        topic = s["channels"][m.channel_id].topic
+        element, leaf = topic.rsplit("/", 2)[-2:]
+        d = json.loads(m.data)
+        if element == "layer":
+            events.append(d)
+            continue
+        if leaf == "events" and d.get("kind") == "range":
+            ranges.setdefault(element, []).append(json.loads(d["detail"]))
+            continue
+        c = cols.setdefault(element, {}).setdefault(leaf, {})
+        for k, v in d.items():
+            if isinstance(v, int | float):
+                c.setdefault(k, []).append(float(v))
+    return {"elements": {e: {leaf: {k: np.asarray(v) for k, v in c.items()} for leaf, c in leaves.items()}
+                         for e, leaves in cols.items()}, "events": events, "ranges": ranges}
+
+
+def network_report(log: dict, out: Path, plt) -> dict:
+    """Figures of a network log: bus voltages with their band and the events, source powers and shares, each
+    source's incoming interaction variable against its feasibility range per window, the topology."""
+    from schemas.network import NetworkScenario
+
+    net = NetworkScenario.model_validate(log["meta"]["scenario"])
+    data = network_series(log["path"])
+    el, v_nom = data["elements"], net.nominal_v_V
+    figs = []
+
+    def mark_events(ax):
+        for ev in data["events"]:
+            for a in ax:
+                a.axvline(ev["t"], color="k", lw=0.6, ls=":")
+            ax[0].annotate(f"{ev['kind']} {json.loads(ev['detail'])['target']}", (ev["t"], 1.0),
+                           xycoords=("data", "axes fraction"), fontsize=7, rotation=90, va="top", ha="right")
+
+    fig, ax = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+    for b in net.buses:
+        ax[0].plot(el[b]["plant"]["t"], el[b]["plant"]["v"], label=b)
+    for s in net.sources:
+        ax[1].plot(el[s]["plant"]["t"], el[s]["plant"]["v"], label=s)
+    for a in ax:
+        a.axhspan(0.98 * v_nom, 1.02 * v_nom, color="g", alpha=0.12, label="±2 % of nominal")
+    mark_events(ax)
+    figs.append(_finish(plt, fig, ax, ("bus v (V)", "terminal v (V)"), f"{net.name}: voltages",
+                        out / "network_voltages.png"))
+
+    fig, ax = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+    t = el[next(iter(net.sources))]["plant"]["t"]
+    P = {s: el[s]["plant"]["P_l"] for s in net.sources}
+    total = sum(P.values())
+    share_sum = sum(src.share for src in net.sources.values())
+    for s, src in net.sources.items():
+        ax[0].plot(t, P[s], label=s)
+        line = ax[1].plot(t, 100.0 * P[s] / np.where(np.abs(total) < 1.0, np.nan, total), lw=0.8, label=s)
+        ax[1].axhline(100.0 * src.share / share_sum, color=line[0].get_color(), ls="--", lw=0.8)
+    mark_events(ax)
+    figs.append(_finish(plt, fig, ax, ("P delivered (W)", "share (%)"), f"{net.name}: powers and shares "
+                        "(dashed: configured shares of all sources)", out / "network_powers.png"))
+
+    fig, ax = plt.subplots(len(net.sources), 1, figsize=(9, 2.2 * len(net.sources)), sharex=True, squeeze=False)
+    ax = ax[:, 0]
+    w = net.layer.window_s
+    for j, s in enumerate(net.sources):
+        z = el[s]["z_in"]
+        ax[j].plot(z["t"], z["P_r_in"], lw=0.8, label=f"P^r,in {s}")
+        for n, r in enumerate(data["ranges"].get(s, [])):  # the layer's range for each window it was connected
+            k = r["window"]
+            ax[j].fill_between([k * w, (k + 1) * w], *r["P"], color="tab:orange", alpha=0.15,
+                               label="Z^r,in range (P)" if n == 0 else None)
+    mark_events(ax)
+    figs.append(_finish(plt, fig, ax, tuple("W" for _ in net.sources), f"{net.name}: incoming interaction "
+                        "variables and their feasibility ranges", out / "network_interaction.png"))
+    figs.append(_topology(net, plt, out / "network_topology.png"))
+    return {"figures": figs}
+
+
+def _topology(net, plt, path: Path) -> str:
+    """The network drawn: sources (squares) and buses (circles) on a circle, lines between them with R."""
+    nodes = net.nodes()
+    angle = {n: 2 * np.pi * k / len(nodes) for k, n in enumerate(nodes)}
+    pos = {n: (np.cos(a), np.sin(a)) for n, a in angle.items()}
+    fig, ax = plt.subplots(figsize=(6, 6))
+    for name, ln in net.lines.items():
+        (x0, y0), (x1, y1) = pos[ln.a], pos[ln.b]
+        ax.plot([x0, x1], [y0, y1], color="0.5", lw=1.5, ls="-" if ln.closed else ":")
+        ax.annotate(f"{name} {ln.R_ohm:g} Ω", ((x0 + x1) / 2, (y0 + y1) / 2), fontsize=7, ha="center")
+    for n, (x, y) in pos.items():
+        src = n in net.sources
+        ax.plot(x, y, "s" if src else "o", ms=16, color="tab:blue" if src else "tab:green")
+        loads = sum(ld.value for ld in net.loads.values() if ld.bus == n)
+        label = f"{n}\nshare {net.sources[n].share:g}" if src else (f"{n}\n{loads:g} W" if loads else n)
+        ax.annotate(label, (x, y), xytext=(0, -22), textcoords="offset points", ha="center", fontsize=8)
+    ax.set_aspect("equal")
+    ax.axis("off")
+    ax.set_title(f"{net.name}: sources (squares), buses (circles), lines (dotted: open at start)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name

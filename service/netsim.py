@@ -72,6 +72,7 @@ class NetworkResult:
     metrics: dict
     violations: dict[str, int] = field(default_factory=dict)  # feasibility excursions per source
     config_events: dict[str, list] = field(default_factory=dict)  # per source: (t, seq, controller JSON)
+    ranges: dict[str, list] = field(default_factory=dict)  # per source: (window, Z^{r,in} P lo/hi W, Qdot lo/hi W/s)
     cores: dict[str, str] = field(default_factory=dict)  # per source: its core's metadata JSON (core_metadata)
 
 
@@ -87,7 +88,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     names = list(net.sources)
     ns = len(names)
     cfgs = list(net.sources.values())
-    ctls, sensors, delays, scheds, feas, taus = [], [], [], [], [], []
+    ctls, sensors, delays, scheds, feas = [], [], [], [], []
     for j, src in enumerate(cfgs):
         model = src.model_params()
         core = make_core(src.controller, model, T, d, impl)
@@ -96,7 +97,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         delays.append(deque([(0.0, 0.0)] * d))
         scheds.append(CommandSchedule(0))
         feas.append(FeasibilityMonitor(lay.window_s))
-        taus.append(tau_prime(model.L_H, model.R_ohm, effective_gain(src.controller, model)))
+    taus = source_taus(net)
     shares = [s.share for s in cfgs]
     if net.start == "steady":
         plant.start_steady(shares, net.nominal_v_V)
@@ -117,7 +118,8 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     events: list[Event] = []
     bus_idx = [plant.node_index[b] for b in net.buses]
     win_sum, win_n, win_k = 0.0, 0, 0
-    _set_feasibility_ranges(plant, net, feas, taus, 0, shares)
+    ranges: dict[str, list] = {name: [] for name in names}  # per source: (window, Z^{r,in}) as set
+    _set_feasibility_ranges(plant, net, feas, taus, 0, shares, names, ranges)
 
     t_arr = np.zeros(N)
     sig = {name: {k: np.zeros(N) for k in SOURCE_SIGNALS} for name in names}
@@ -211,7 +213,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
                         config_events[names[j]].append((t, k + 1, new.model_dump_json()))
             win_sum, win_n = 0.0, 0
             win_term = [0.0] * ns
-            _set_feasibility_ranges(plant, net, feas, taus, win_k, shares)
+            _set_feasibility_ranges(plant, net, feas, taus, win_k, shares, names, ranges)
         plant.advance(r, T, n_sub)
         if not plant.finite() or any(not (0.5 * v_nom < v < 2.0 * v_nom) for v in plant.v_n):
             diverged_at = plant.t
@@ -220,7 +222,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     sig = {name: {k: a[:n] for k, a in row.items()} for name, row in sig.items()}
     res = NetworkResult(net, t_arr[:n], sig, {b: a[:n] for b, a in bus_v.items()},
                         {ln: a[:n] for ln, a in line_i.items()}, events, {},
-                        {name: f.count for name, f in zip(names, feas, strict=True)}, config_events,
+                        {name: f.count for name, f in zip(names, feas, strict=True)}, config_events, ranges,
                         {name: core_metadata(cfgs[j].controller, cfgs[j].model_params(), T, ctls[j].core.d)
                          for j, name in enumerate(names)})
     for j, prof in enumerate(plant.profiles):  # load steps are events of the metrics too
@@ -231,7 +233,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     return res
 
 
-def _box(plant: NetworkPlant, net: NetworkScenario, k: int) -> tuple[float, float, float, float]:
+def window_box(plant: NetworkPlant, net: NetworkScenario, k: int) -> tuple[float, float, float, float]:
     """The network's load box over window k (W, W/s), widened by FORECAST_MARGIN; resistive loads at nominal."""
     w = net.layer.window_s
     t0, t1 = k * w, min((k + 1) * w, net.timing.duration_s)
@@ -246,13 +248,32 @@ def _box(plant: NetworkPlant, net: NetworkScenario, k: int) -> tuple[float, floa
     return load_box(lo, hi, dlo, dhi, FORECAST_MARGIN)
 
 
-def _set_feasibility_ranges(plant, net, feas, taus, k, shares) -> None:
-    """Z^{r,in}[k] of every source: its share of the network's load box over window k."""
-    box = _box(plant, net, k)
+def incoming_ranges(plant: NetworkPlant, net: NetworkScenario, taus: list[float], k: int, shares: list[float]
+                    ) -> list[tuple[float, float, float, float]]:
+    """Z^{r,in}[k] of every source (P lo, P hi W, Qdot lo, Qdot hi W/s): its share of the network's load box over
+    window k, through the paper's incoming range with its tau' (taus)."""
+    box = window_box(plant, net, k)
     total = sum(shares) or 1.0
-    for j, f in enumerate(feas):
-        a = shares[j] / total
-        f.set_range(k, incoming_range(a * box[0], a * box[1], a * box[2], a * box[3], taus[j]))
+    return [incoming_range(*(shares[j] / total * x for x in box), taus[j]) for j in range(len(shares))]
+
+
+def source_taus(net: NetworkScenario) -> list[float]:
+    """tau' of each source's controller on its own model (s): what its feasibility range is built with."""
+    out = []
+    for s in net.sources.values():
+        model = s.model_params()
+        out.append(tau_prime(model.L_H, model.R_ohm, effective_gain(s.controller, model)))
+    return out
+
+
+def _set_feasibility_ranges(plant, net, feas, taus, k, shares, names, ranges) -> None:
+    """Window k's Z^{r,in} for every source, from the shares of the sources connected as it starts (a disconnected
+    one gets none, and the others' shares grow); kept in ``ranges`` for the log."""
+    live = [sh if plant.connected(n) else 0.0 for sh, n in zip(shares, names, strict=True)]
+    for f, z, n, sh in zip(feas, incoming_ranges(plant, net, taus, k, live), names, live, strict=True):
+        if sh > 0.0:
+            f.set_range(k, z)
+            ranges[n].append((k, z))
 
 
 def _apply_event(ev, t: float, plant: NetworkPlant, net: NetworkScenario, ctls, shares, taus, T, d, impl) -> Event:
@@ -270,7 +291,7 @@ def _apply_event(ev, t: float, plant: NetworkPlant, net: NetworkScenario, ctls, 
     src = net.sources[ev.target]
     connected = [plant.connected(n) for n in net.sources]
     weight = sum(shares[j] for j in range(len(shares)) if connected[j] or j == s)
-    box = _box(plant, net, int(t // net.layer.window_s))
+    box = window_box(plant, net, int(t // net.layer.window_s))
     a = shares[s] / weight
     f = forecast_outgoing(ctls[s].core.cfg, src.model_params(), T, d, tuple(a * x for x in box), taus[s],
                           max_ramp_s=net.layer.window_s, impl=impl)

@@ -115,7 +115,8 @@ def write_trace_mcap(path: str | Path, tr: dict, metadata: dict[str, dict[str, s
 
 def write_network_mcap(path: str | Path, res, prefix: str | None = None) -> Path:
     """A network run (service.netsim.NetworkResult) as one MCAP: each source's channels under its own prefix,
-    <prefix>/<source>/meas, /z_in, /cmd, /events (its controller's config changes) and /plant (its true state,
+    <prefix>/<source>/meas, /z_in, /cmd, /events (its controller's config changes, the layer's Z^{r,in} for
+    each window it was connected in) and /plant (its true state,
     P_l the power its lines draw), each bus's under <prefix>/<bus>/plant, and the layer's events (breakers,
     connect requests and the answers, load steps) on <prefix>/layer/events; metadata: the scenario, the metrics and
     one core record per source (core:<source>), so that ``energyctl replay LOG --component <source>`` rebuilds and
@@ -153,6 +154,12 @@ def write_network_mcap(path: str | Path, res, prefix: str | None = None) -> Path
             f.add(f"{p}/plant", tk, {"t": tk, "i": c["i"][k], "v": c["v"][k], "u": c["u"][k], "P_l": c["P"][k]})
         for bus, v in buses.items():
             f.add(f"{prefix}/{bus}/plant", tk, {"t": tk, "i": 0.0, "v": v[k], "u": 0.0, "P_l": 0.0})
+    w = net.layer.window_s
+    for name, rs in res.ranges.items():  # the layer's Z^{r,in} for each window, as it started
+        for k, z in rs:
+            f.add(f"{prefix}/{name}/events", k * w, {"t": k * w, "seq": int(round(k * w * net.timing.control_rate_hz)),
+                                                      "kind": "range", "detail": json.dumps(
+                                                          {"window": k, "P": [z[0], z[1]], "Qdot": [z[2], z[3]]})})
     for ev in res.events:
         detail = json.dumps({"target": ev.target, "accepted": ev.accepted, "reason": ev.reason})
         f.add(f"{prefix}/layer/events", ev.t, {"t": ev.t, "seq": int(round(ev.t * net.timing.control_rate_hz)),

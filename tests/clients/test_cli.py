@@ -516,3 +516,18 @@ def test_sweep_network_preset_summarises_each_network(capsys):
     assert main(["sweep", "--preset", "network", net, *narrow, "--jobs", "1", "--json"]) == 0
     runs = json.loads(capsys.readouterr().out)["runs"]
     assert len(runs) == 2 and not any(r["diverged"] for r in runs) and all(r["worst_sharing_pp"] < 2 for r in runs)
+
+
+def test_report_draws_a_network_log(tmp_path, capsys):
+    """A network log gets the network's figures (voltages with the band and the events, powers and shares, each
+    source's P^r,in against the layer's Z^r,in ranges, the topology) and the metrics tables in summary.md."""
+    pytest.importorskip("matplotlib")
+    log = tmp_path / "net.mcap"
+    assert main(["sim", str(SCENARIOS / "network" / "two-source-trip.toml"), "--set", "timing.duration_s=0.6",
+                 "--out", str(log)]) == 0
+    capsys.readouterr()
+    assert main(["report", str(log), "--out", str(tmp_path / "rep")]) == 0
+    figs = {"network_voltages.png", "network_powers.png", "network_interaction.png", "network_topology.png"}
+    assert figs <= {p.name for p in (tmp_path / "rep").iterdir()}
+    summary = (tmp_path / "rep" / "summary.md").read_text()
+    assert "trip S2" in summary and "S1" in summary
