@@ -182,8 +182,14 @@ def report(paths: list[str], out_dir: str) -> dict:
 
     metrics = [(lg["name"], _logged_metrics(lg["meta"].get("metrics")) or summary_metrics(lg)) for lg in logs]
     keys = ["settle_s", "v_min", "v_max", "ss_error", "rms_du_dt", "max_abs_du_dt"]
-    lines = ["# energyctl report", "", *(f"- `{lg['path']}`" + ("" if lg["complete"] else " (cut off; recovered "
-                                                                  "up to its last complete chunk)") for lg in logs),
+    def source(lg: dict) -> str:
+        if lg["meta"].get("metrics"):
+            return "metrics as the run logged them"
+        return ("metrics from the logged true plant state" if "plant" in lg["series"] else
+                "metrics from the measurements the controller saw (noisy; a plant's own log has the true state)")
+
+    lines = ["# energyctl report", "", *(f"- `{lg['path']}`: {source(lg)}" + (
+                 "" if lg["complete"] else " (cut off; recovered up to its last complete chunk)") for lg in logs),
              "", "| log | " + " | ".join(keys) + " |", "|" + " --- |" * (len(keys) + 1)]
     for name, m in metrics:
         lines.append(f"| {name} | " + " | ".join(_fmt(m.get(k)) for k in keys) + " |")
