@@ -171,7 +171,7 @@ class NetworkScenario(Strict):
     kind: Literal["network"] = Field(description="'network': tells a network scenario from a one-source one")
     name: str = Field(default="network", description="name of the scenario")
     description: str = Field(default="", description="free text")
-    seed: int = Field(default=1, description="seed of the sensor noise and the interaction-message losses")
+    seed: int = Field(default=1, ge=0, description="seed of the sensor noise and the interaction-message losses")
     nominal_v_V: Pos = Field(default=80.0, description="the network's nominal voltage, V")
     start: Literal["steady", "rest"] = Field(
         default="steady", description="steady: the network starts at the DC operating point of its loads at t = 0, "
@@ -217,6 +217,8 @@ def topology_errors(n: NetworkScenario) -> list[str]:
     seen: dict[str, str] = {}
     for kind, items in kinds.items():
         for name in items:
+            if name == "layer":
+                out.append(f"{kind} name 'layer': reserved for the interconnection layer's channels")
             if not NAME.match(name):
                 out.append(f"{kind} name {name!r}: letters, digits, '_' and '-', starting with a letter")
             if name in seen:

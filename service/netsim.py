@@ -71,7 +71,7 @@ class NetworkResult:
     events: list[Event]
     metrics: dict
     violations: dict[str, int] = field(default_factory=dict)  # feasibility excursions per source
-    config_events: dict[str, list] = field(default_factory=dict)  # per source: (t, seq, controller JSON)
+    config_events: dict[str, list] = field(default_factory=dict)  # per source: (t, seq applied before, v_ref V)
     ranges: dict[str, list] = field(default_factory=dict)  # per source: (window, Z^{r,in} P lo/hi W, Qdot lo/hi W/s)
     cores: dict[str, str] = field(default_factory=dict)  # per source: its core's metadata JSON (core_metadata)
 
@@ -103,7 +103,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         plant.start_steady(shares, net.nominal_v_V)
     v_ref0 = [s.controller.v_ref_V for s in cfgs]
     win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
-    config_events: dict[str, list] = {name: [] for name in names}  # (t, seq applied before, controller JSON)
+    config_events: dict[str, list] = {name: [] for name in names}  # the layer's v_ref moves: (t, seq, v_ref V)
     # links: per receiving source, (delay in samples, loss, silent from)
     links = []
     for name in names:
@@ -117,9 +117,14 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     pending_events = sorted(net.events, key=lambda e: e.t_s)
     events: list[Event] = []
     bus_idx = [plant.node_index[b] for b in net.buses]
-    win_sum, win_n, win_k = 0.0, 0, 0
+    win_sum, win_n = 0.0, 0
+    per_window = max(1, int(round(lay.window_s / T)))  # ticks per layer window: windows by integer arithmetic
+    bus_rng = np.random.default_rng([net.seed, 0xB05])  # the layer's bus measurements: their own noise stream
+    loss_frac = 0.0  # line losses as a fraction of the load, measured over the last window (Z^{r,in}'s allowance)
+    win_delivered = win_load = 0.0
     ranges: dict[str, list] = {name: [] for name in names}  # per source: (window, Z^{r,in}) as set
-    _set_feasibility_ranges(plant, net, feas, taus, 0, shares, names, ranges)
+    if lay.mode != "none":
+        _set_feasibility_ranges(plant, net, feas, taus, 0, shares, names, ranges, 0.0)
 
     t_arr = np.zeros(N)
     sig = {name: {k: np.zeros(N) for k in SOURCE_SIGNALS} for name in names}
@@ -131,9 +136,14 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     r = [0.0] * ns
     n = 0
     for k in range(N):
-        t = plant.t
-        while pending_events and pending_events[0].t_s <= t + 1e-12:
-            events.append(_apply_event(pending_events.pop(0), t, plant, net, ctls, shares, taus, T, d, impl))
+        t = plant.t = k * T  # by index, not by summing T (an event at k T stays on tick k in a long run)
+        topology = False
+        while pending_events and int(round(pending_events[0].t_s / T)) <= k:
+            events.append(_apply_event(pending_events.pop(0), t, plant, net, ctls, shares, taus, T, d, impl,
+                                       k // per_window, loss_frac))
+            topology = True
+        if topology and lay.mode != "none":  # the current window's ranges, for the sources connected now
+            _set_feasibility_ranges(plant, net, feas, taus, k // per_window, shares, names, ranges, loss_frac)
         connected = [plant.connected(name) for name in names]
         samples = []
         for j in range(ns):
@@ -192,16 +202,25 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
             line_i[ln][k] = plant.i_l[j]
         n = k + 1
         # the layer's window: move v_ref to restore the buses, check the next window's feasibility ranges
-        if bus_idx:
-            win_sum += sum(plant.v_n[bi] for bi in bus_idx) / len(bus_idx)
+        if bus_idx:  # the buses as the layer measures them (the sensors' voltage noise)
+            noise = net.sensor.noise_v_V
+            win_sum += sum(plant.v_n[bi] + (noise * bus_rng.standard_normal() if noise else 0.0)
+                           for bi in bus_idx) / len(bus_idx)
             win_n += 1
             for j in range(ns):
                 win_term[j] += samples[j].v
-        if int((t + T) // lay.window_s + 1e-9) != win_k:
-            win_k = int((t + T) // lay.window_s + 1e-9)
+        win_delivered += sum(P)
+        win_load += sum(plant.load_power(q, t) for q in range(len(plant.load_list)))
+        if (k + 1) % per_window == 0:
+            win_k = (k + 1) // per_window
+            if win_load > 0.0:
+                loss_frac = max(0.0, win_delivered / win_load - 1.0)
+            win_delivered = win_load = 0.0
             if lay.mode == "live-sum" and lay.v_ref_gain > 0 and win_n:
                 correction = lay.v_ref_gain * (v_nom - win_sum / win_n)
                 for j in range(ns):
+                    if t - got[j][0] > STALE_S:  # the layer's messages do not reach it either: v_ref stays
+                        continue
                     if lay.v_ref_mode == "per-source" and connected[j] and ctls[j].mode == ACTIVE:
                         # where it sits (sharing exactly needs v_ref = v at its terminal), moved with the buses
                         target = win_term[j] / win_n + correction
@@ -209,11 +228,12 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
                         target = ctls[j].v_ref_V + correction
                     lo, hi = v_ref0[j] - lay.v_ref_max_offset_V, v_ref0[j] + lay.v_ref_max_offset_V
                     new = ctls[j].set_v_ref(min(max(target, lo), hi))
-                    if new is not None:  # applied before the next tick: a log's config event
-                        config_events[names[j]].append((t, k + 1, new.model_dump_json()))
+                    if new is not None:  # applied before the next tick: a log's v_ref event
+                        config_events[names[j]].append((t, k + 1, new.v_ref_V))
             win_sum, win_n = 0.0, 0
             win_term = [0.0] * ns
-            _set_feasibility_ranges(plant, net, feas, taus, win_k, shares, names, ranges)
+            if lay.mode != "none":
+                _set_feasibility_ranges(plant, net, feas, taus, win_k, shares, names, ranges, loss_frac)
         plant.advance(r, T, n_sub)
         if not plant.finite() or any(not (0.5 * v_nom < v < 2.0 * v_nom) for v in plant.v_n):
             diverged_at = plant.t
@@ -233,26 +253,32 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     return res
 
 
-def window_box(plant: NetworkPlant, net: NetworkScenario, k: int) -> tuple[float, float, float, float]:
-    """The network's load box over window k (W, W/s), widened by FORECAST_MARGIN; resistive loads at nominal."""
+def window_box(plant: NetworkPlant, net: NetworkScenario, k: int, loss_frac: float = 0.0
+               ) -> tuple[float, float, float, float]:
+    """What the sources deliver over window k (W, W/s): the loads' box, resistive loads at nominal from their
+    switching-in time, times 1 + loss_frac (the lines' losses as the layer last measured them), widened by
+    FORECAST_MARGIN."""
     w = net.layer.window_s
     t0, t1 = k * w, min((k + 1) * w, net.timing.duration_s)
     lo = hi = dlo = dhi = 0.0
     for j, ld in enumerate(plant.load_list):
         if ld.type == "resistive":
             p = net.load_scale * net.nominal_v_V ** 2 / ld.R_ohm
-            lo, hi = lo + p, hi + p
+            on_lo = 0.0 if ld.active_from_s > t0 else p  # switched in during the window: either
+            on_hi = p if ld.active_from_s < t1 else 0.0
+            lo, hi = lo + on_lo, hi + on_hi
         else:
             a, b, c, e = plant.profiles[j].range_over(t0, max(t1, t0 + 1e-9))
             lo, hi, dlo, dhi = lo + a, hi + b, dlo + c, dhi + e
-    return load_box(lo, hi, dlo, dhi, FORECAST_MARGIN)
+    g = 1.0 + loss_frac
+    return load_box(g * lo, g * hi, g * dlo, g * dhi, FORECAST_MARGIN)
 
 
-def incoming_ranges(plant: NetworkPlant, net: NetworkScenario, taus: list[float], k: int, shares: list[float]
-                    ) -> list[tuple[float, float, float, float]]:
-    """Z^{r,in}[k] of every source (P lo, P hi W, Qdot lo, Qdot hi W/s): its share of the network's load box over
-    window k, through the paper's incoming range with its tau' (taus)."""
-    box = window_box(plant, net, k)
+def incoming_ranges(plant: NetworkPlant, net: NetworkScenario, taus: list[float], k: int, shares: list[float],
+                    loss_frac: float = 0.0) -> list[tuple[float, float, float, float]]:
+    """Z^{r,in}[k] of every source (P lo, P hi W, Qdot lo, Qdot hi W/s): its share of what the sources deliver over
+    window k (window_box), through the paper's incoming range with its tau' (taus)."""
+    box = window_box(plant, net, k, loss_frac)
     total = sum(shares) or 1.0
     return [incoming_range(*(shares[j] / total * x for x in box), taus[j]) for j in range(len(shares))]
 
@@ -266,17 +292,19 @@ def source_taus(net: NetworkScenario) -> list[float]:
     return out
 
 
-def _set_feasibility_ranges(plant, net, feas, taus, k, shares, names, ranges) -> None:
-    """Window k's Z^{r,in} for every source, from the shares of the sources connected as it starts (a disconnected
-    one gets none, and the others' shares grow); kept in ``ranges`` for the log."""
+def _set_feasibility_ranges(plant, net, feas, taus, k, shares, names, ranges, loss_frac) -> None:
+    """Window k's Z^{r,in} for every source, from the shares of the sources connected now (a disconnected one gets
+    none, and the others' shares grow); set again after a breaker or connect event; kept in ``ranges`` for the
+    log."""
     live = [sh if plant.connected(n) else 0.0 for sh, n in zip(shares, names, strict=True)]
-    for f, z, n, sh in zip(feas, incoming_ranges(plant, net, taus, k, live), names, live, strict=True):
+    for f, z, n, sh in zip(feas, incoming_ranges(plant, net, taus, k, live, loss_frac), names, live, strict=True):
         if sh > 0.0:
             f.set_range(k, z)
             ranges[n].append((k, z))
 
 
-def _apply_event(ev, t: float, plant: NetworkPlant, net: NetworkScenario, ctls, shares, taus, T, d, impl) -> Event:
+def _apply_event(ev, t: float, plant: NetworkPlant, net: NetworkScenario, ctls, shares, taus, T, d, impl,
+                 window: int, loss_frac: float) -> Event:
     lines = [plant.line_names.index(ev.target)] if ev.target in net.lines else plant.lines_at(ev.target)
     if ev.kind == "trip":
         for j in lines:
@@ -291,7 +319,7 @@ def _apply_event(ev, t: float, plant: NetworkPlant, net: NetworkScenario, ctls, 
     src = net.sources[ev.target]
     connected = [plant.connected(n) for n in net.sources]
     weight = sum(shares[j] for j in range(len(shares)) if connected[j] or j == s)
-    box = window_box(plant, net, int(t // net.layer.window_s))
+    box = window_box(plant, net, window, loss_frac)
     a = shares[s] / weight
     f = forecast_outgoing(ctls[s].core.cfg, src.model_params(), T, d, tuple(a * x for x in box), taus[s],
                           max_ramp_s=net.layer.window_s, impl=impl)
@@ -318,6 +346,7 @@ def _back_in_band(t: np.ndarray, v: np.ndarray, t0: float, t1: float, target: fl
 
 def _smooth(x: np.ndarray, n: int) -> np.ndarray:
     """Moving average over n samples (the first n - 1 over what there is)."""
+    n = max(1, min(n, len(x)))
     c = np.cumsum(np.insert(x, 0, 0.0))
     out = (c[n:] - c[:-n]) / n
     head = c[1:n] / np.arange(1, n)
@@ -389,7 +418,7 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls) -> dict
         e = {"t_s": ev.t, "kind": ev.kind, "target": ev.target, "accepted": ev.accepted, "reason": ev.reason,
              "bus_back_in_band_s": {b: _back_in_band(t, v, ev.t, t1, v_nom, BAND_SETTLE)
                                     for b, v in res.buses.items()},
-             "bus_min_V": {b: float(v[t >= ev.t].min()) if (t >= ev.t).any() else None for b, v in res.buses.items()},
+             "bus_min_V": {b: float(v[window].min()) if window.any() else None for b, v in res.buses.items()},
              "terminals_back_in_band_s": {
                  s: _back_in_band(t, res.sources[s]["v"], ev.t, t1, float(np.mean(res.sources[s]["v"][settled])),
                                   BAND_SETTLE) if settled.any() else None for s in names},

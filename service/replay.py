@@ -180,12 +180,11 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     held_set = set(held.tolist())
     cuts |= held_set | {j + 1 for j in held_set}
     cfg_at = {}
-    if not what_if:
-        for k, cfgs in tk.cfg_events.items():
-            j = int(np.searchsorted(tk.keys, k))
-            if j < n and tk.keys[j] == k:
-                cfg_at[j] = cfgs
-                cuts.add(j)
+    for k, cfgs in tk.cfg_events.items():
+        j = int(np.searchsorted(tk.keys, k))
+        if j < n and tk.keys[j] == k:
+            cfg_at[j] = cfgs
+            cuts.add(j)
     block = 200_000  # progress granularity
     cuts |= set(range(0, n, block))
     cuts_sorted = sorted(cuts)
@@ -194,7 +193,10 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
         if a > 0 and epochs[a] != epochs[a - 1]:  # the plant restarted: the daemon re-initialised its core here
             core.reset()
         for c in cfg_at.get(a, []):
-            core.set_gains(ControllerConfig.model_validate(c))
+            if set(c) == {"v_ref_V"}:  # a network layer's v_ref move: part of the inputs, kept in a what-if too
+                core.set_gains(core.cfg.model_copy(update=c))
+            elif not what_if:  # an operator's config set: a what-if replaces it
+                core.set_gains(ControllerConfig.model_validate(c))
         if a in held_set:
             core.hold(int(tk.rows[a, 0]), float(tk.logged[a]))
             du[a], du_next[a] = tk.logged[a], 0.0

@@ -62,6 +62,7 @@ class SourceController:
         connected: its breaker is closed; fresh: that P^{r,in} is recent enough to use."""
         if not fresh:
             P_in_W, P_in_dot_W_per_s = -s.v * s.i_load, 0.0  # its own terminal power
+        self.P_in_used = P_in_W
         power = abs(P_in_W)
         if not connected:
             idle = True
@@ -81,6 +82,5 @@ class SourceController:
             self.core.hold(s.seq, r)
             return r, 0.0
         self.mode = ACTIVE if fresh else FALLBACK
-        self.P_in_used = P_in_W
         out = self.core.step(s, Incoming(P_in_W, P_in_dot_W_per_s))
         return out.du_dt, out.du_dt_next

@@ -115,8 +115,8 @@ def write_trace_mcap(path: str | Path, tr: dict, metadata: dict[str, dict[str, s
 
 def write_network_mcap(path: str | Path, res, prefix: str | None = None) -> Path:
     """A network run (service.netsim.NetworkResult) as one MCAP: each source's channels under its own prefix,
-    <prefix>/<source>/meas, /z_in, /cmd, /events (its controller's config changes, the layer's Z^{r,in} for
-    each window it was connected in) and /plant (its true state,
+    <prefix>/<source>/meas, /z_in, /cmd, /events (the layer's v_ref moves, which replay applies also in a
+    what-if, and its Z^{r,in} for each window the source was connected in) and /plant (its true state,
     P_l the power its lines draw), each bus's under <prefix>/<bus>/plant, and the layer's events (breakers,
     connect requests and the answers, load steps) on <prefix>/layer/events; metadata: the scenario, the metrics and
     one core record per source (core:<source>), so that ``energyctl replay LOG --component <source>`` rebuilds and
@@ -142,9 +142,10 @@ def write_network_mcap(path: str | Path, res, prefix: str | None = None) -> Path
     for k, tk in enumerate(t):
         for name, c in cols.items():
             p = f"{prefix}/{name}"
-            while events[name] and events[name][0][1] == k:  # applied before this tick
-                et, seq, detail = events[name].pop(0)
-                f.add(f"{p}/events", et, {"t": et, "seq": seq, "kind": "config", "detail": detail})
+            while events[name] and events[name][0][1] == k:  # the layer's v_ref move, applied before this tick
+                et, seq, v_ref = events[name].pop(0)
+                f.add(f"{p}/events", et, {"t": et, "seq": seq, "kind": "v_ref",
+                                          "detail": json.dumps({"v_ref_V": v_ref})})
             f.add(f"{p}/meas", tk, {"seq": k, "t": tk, "i": c["meas_i"][k], "v": c["meas_v"][k],
                                     "u": c["meas_u"][k], "i_load": c["meas_i_load"][k]})
             f.add(f"{p}/z_in", tk, {"seq": k, "t": tk, "P_r_in": c["P_in"][k], "P_r_in_dot": 0.0,

@@ -90,7 +90,7 @@ def _top_level(data: bytes):
 
 def _config_events(raw) -> list[dict]:
     """The config-change events among raw event messages (JSON)."""
-    return [d for d in map(json.loads, raw) if d.get("kind") == "config"]
+    return [d for d in map(json.loads, raw) if d.get("kind") in ("config", "v_ref")]
 
 
 def _string(data: bytes, off: int) -> tuple[str, int]:

@@ -42,10 +42,9 @@ def test_after_a_trip_the_other_source_carries_the_load():
     res = _run("two-source-trip")
     m = res.metrics
     assert not m["diverged"]
-    t = res.t
-    after = t >= 0.9
-    P1, P2 = res.sources["S1"]["P"][after].mean(), res.sources["S2"]["P"][after].mean()
-    assert P1 / (P1 + P2) >= 0.95
+    after = res.t >= 0.9
+    assert res.sources["S1"]["P"][after].mean() >= 0.95 * 2400.0  # S1 delivers the whole load (and the losses)
+    assert np.all(res.lines["L2"][after] == 0.0)
     trip = next(e for e in m["events"] if e["kind"] == "trip")
     assert trip["bus_back_in_band_s"]["bus"] <= 0.200 and trip["bus_min_V"]["bus"] >= 74.0
 
@@ -114,7 +113,7 @@ def test_a_feasible_source_plugs_in_gently_and_an_infeasible_one_is_refused():
     plug = next(e for e in res.metrics["events"] if e["kind"] == "connect")
     assert not plug["accepted"] and plug["reason"]
     assert res.metrics["sources"]["S3"]["final_mode"] == "idle"
-    assert np.all(res.lines["L3"] == 0.0) and np.all(res.sources["S3"]["P"] == 0.0)
+    assert np.all(res.lines["L3"] == 0.0)
 
 
 @pytest.mark.parametrize("link", ["links.*.delay_s=0.001", "links.*.loss=0.1"])
@@ -175,3 +174,30 @@ def test_each_source_of_a_network_log_replays_identical(tmp_path):
         assert r["identical"] and r["compared"] == 12000, (name, r["first_divergence"])
     with pytest.raises(Exception, match="name the component"):
         replay(out, progress=False)
+
+
+def test_a_what_if_replay_of_a_network_source_keeps_the_layer_s_v_ref_moves(tmp_path):
+    """The layer's v_ref moves are inputs of a network source, not an operator's config: a what-if with the gain it
+    already had reproduces the log, so a what-if with another gain changes only what the gain changes."""
+    from service.logio.mcapfile import write_network_mcap
+    from service.logio.reader import read_log
+    from service.replay import replay
+
+    out, what_if = tmp_path / "net.mcap", tmp_path / "what-if.mcap"
+    res = _run("two-source", "timing.duration_s=0.3")
+    write_network_mcap(out, res)
+    assert len(res.config_events["S1"]) >= 2  # the layer moved S1's v_ref at least twice
+    assert replay(out, overrides=["K_per_s=1000.0"], out=str(what_if), progress=False, component="S1")["ticks"] == 3000
+
+    def commands(log, component=None) -> np.ndarray:  # du/dt of each cmd row (code 2; seq, t, du_dt, ...)
+        rows = np.concatenate(read_log(log, component=component).rows)
+        return rows[rows[:, 0] == 2][:, 3]
+
+    assert np.array_equal(commands(out, "S1"), commands(what_if))
+
+
+def test_short_runs_still_get_their_metrics():
+    """A run shorter than the sharing filter (5 ms) is measured, not a crash."""
+    for seconds in (0.0001, 0.003):
+        m = _run("two-source", f"timing.duration_s={seconds}").metrics
+        assert not m["diverged"] and m["t_end"] < seconds
