@@ -7,6 +7,7 @@ from clients.commands import (
     bench,
     compare,
     demo,
+    foxglove,
     load,
     log,
     plant,
@@ -23,4 +24,4 @@ from clients.commands import (
 
 # in the order energyctl --help lists them
 COMMANDS = (sim, compare, sweep, demo, bench, run, plant, load, query, router, secure_profile, replay, log, report,
-            schema)
+            schema, foxglove)

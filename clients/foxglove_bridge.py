@@ -1,0 +1,471 @@
+"""A bridge from Zenoh to Foxglove (energyctl foxglove): the components' measurements, commands and interaction
+messages as Foxglove channels, their controller settings as Foxglove parameters, their status and config as
+Foxglove services. The WebSocket server is the foxglove-sdk package's (``foxglove.start_server``); nothing of
+the Foxglove protocol is written here.
+
+For each component ``ID`` under ``PREFIX``:
+
+| Zenoh key | Foxglove | schema |
+| --- | --- | --- |
+| ``PREFIX/PLANT/meas`` (PLANT: its plant's id, by default ID) | channel ``PREFIX/ID/meas`` | energyctl.Measurement |
+| ``PREFIX/ID/cmd`` | channel ``PREFIX/ID/cmd`` | energyctl.Command |
+| ``PREFIX/ID/z`` | channel ``PREFIX/ID/z_out`` | energyctl.Interaction |
+| ``PREFIX/ID/config`` (get), ``.../config/set`` | parameters ``ID.controller.<key>``, ``ID.lifecycle`` | - |
+| ``PREFIX/ID/status`` | service ``ID/status`` | energyctl.StatusReply |
+| ``PREFIX/ID/config`` | service ``ID/config`` | energyctl.ConfigReply |
+| ``PREFIX/ID/config/set`` | service ``ID/config/set`` (request ``{"set": [...]}``) | energyctl.ConfigSetReply |
+
+The channel topics and schemas are those of the daemon's MCAP log (JSON encoding, the message models' JSON
+Schemas), so a Foxglove layout made for a recording works live and the other way round. Each channel keeps at
+most ``rate_hz`` messages a second (the rest are counted as dropped); a channel no Foxglove client subscribes
+to is not decoded at all. Zenoh's callback threads only decode and hand the JSON to the SDK.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+from schemas.codec import CMD, MEAS, Codec, DecodeError, Z
+from schemas.component import ZenohConfig
+from schemas.messages import json_schema
+from schemas.replies import REPLY_MODELS
+from service.daemon.bus import key, open_session
+
+# Zenoh leaf -> (the daemon's MCAP topic leaf, schema name, codec)
+STREAMS = {"meas": ("meas", "energyctl.Measurement", MEAS), "cmd": ("cmd", "energyctl.Command", CMD),
+           "z": ("z_out", "energyctl.Interaction", Z)}
+SET_TIMEOUT_S = 3.0  # the daemon refuses a set its loop did not take within 2 s: allow for that answer
+GET_TIMEOUT_S = 1.0
+
+
+def parse_components(text: str) -> list[tuple[str, str]]:
+    """"source,b:rig" -> [("source", "source"), ("b", "rig")]: component ids, each with the id its plant publishes
+    measurements under (``ID:PLANT``; by default the id itself)."""
+    out = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        cid, _, plant = part.partition(":")
+        for name in (cid, plant or cid):
+            if not name or not all(c.isalnum() or c in "_-" for c in name):
+                raise ValueError(f"{part!r}: a component id is letters, digits, _ and - (ID or ID:PLANT_ID)")
+        out.append((cid, plant or cid))
+    if not out:
+        raise ValueError("no component given")
+    return out
+
+
+class Decimator:
+    """Keeps at most ``rate_hz`` messages a second (0: all), as a schedule of one slot per interval 1/rate_hz: a
+    message is kept when the next slot is due, and then the slot after it is. A message up to half an interval late
+    keeps the schedule (steady input at the rate with jitter is not thinned); later, the schedule restarts half an
+    interval after it. So kept messages are at least half an interval apart, at most T * rate_hz + 1.5 in any T
+    seconds, and a burst after a quiet spell passes one."""
+
+    __slots__ = ("interval_ns", "due_ns")
+
+    def __init__(self, rate_hz: float):
+        self.interval_ns = int(1e9 / rate_hz) if rate_hz > 0 else 0
+        self.due_ns = 0
+
+    def keep(self, now_ns: int) -> bool:
+        if now_ns < self.due_ns:
+            return False
+        self.due_ns = max(self.due_ns + self.interval_ns, now_ns + self.interval_ns // 2)
+        return True
+
+
+@dataclass
+class Stream:
+    """One Zenoh key bridged to one Foxglove channel, with its counters."""
+
+    key: str
+    topic: str
+    codec: Codec
+    channel: object
+    decimator: Decimator
+    bools: tuple[int, ...]
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    received: int = 0
+    logged: int = 0
+    dropped: int = 0  # by the decimation
+    unsubscribed: int = 0  # arrived while no Foxglove client subscribed: not decoded
+    invalid: int = 0  # not a valid message (schemas.codec.DecodeError)
+    last_error: str = ""
+
+    def on_sample(self, sample) -> None:
+        """Zenoh's callback: count, decimate, decode, log. Never waits on anything but this stream's counters."""
+        with self.lock:
+            self.received += 1
+            if not self.decimator.keep(time.monotonic_ns()):
+                self.dropped += 1
+                return
+            if not self.channel.has_sinks():
+                self.unsubscribed += 1
+                return
+        try:
+            vals = self.codec.decode(sample.payload.to_bytes())
+        except DecodeError as e:
+            with self.lock:
+                self.invalid += 1
+                self.last_error = str(e)
+            return
+        msg = dict(zip(self.codec.fields, vals, strict=True))
+        for k in self.bools:  # as the daemon's log writes them: true/false, not 1/0
+            msg[self.codec.fields[k]] = bool(vals[k])
+        self.channel.log(msg)
+        with self.lock:
+            self.logged += 1
+
+    def status(self) -> dict:
+        with self.lock:
+            out = {"key": self.key, "received": self.received, "logged": self.logged, "dropped": self.dropped,
+                   "unsubscribed": self.unsubscribed, "invalid": self.invalid}
+            if self.last_error:
+                out["last_error"] = self.last_error
+        return out
+
+
+def toml_text(value) -> str:
+    """A Foxglove parameter value as the TOML value of a config/set entry."""
+    if value is None:
+        raise ValueError("a parameter cannot be unset (no value)")
+    if isinstance(value, bytes):
+        raise ValueError("a byte array is not a config value")
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)  # TOML reads inf, nan, 1e+20 and repr's other forms
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)  # a TOML basic string
+    if isinstance(value, list):
+        return "[" + ", ".join(toml_text(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {toml_text(v)}" for k, v in value.items()) + "}"
+    raise ValueError(f"unsupported parameter value {value!r}")
+
+
+def flatten_config(cid: str, reply: dict) -> dict[str, object]:
+    """A ConfigReply (or the controller of a ConfigSetApplied) -> {"ID.controller.K_per_s": 2000.0, ...,
+    "ID.lifecycle": state}."""
+    out: dict[str, object] = {}
+
+    def walk(prefix: str, d: dict) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(f"{prefix}{k}.", v)
+            else:
+                out[f"{prefix}{k}"] = v
+
+    walk(f"{cid}.controller.", reply.get("controller", {}))
+    if "state" in reply:
+        out[f"{cid}.lifecycle"] = reply["state"]
+    return out
+
+
+def finite_json(obj) -> bytes:
+    """JSON bytes a browser can parse: the daemon's replies may hold NaN or Infinity (Python's json writes them as
+    bare tokens, outside strict JSON); here they become null."""
+
+    def clean(v):
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, list | tuple):
+            return [clean(x) for x in v]
+        return v
+
+    return json.dumps(clean(obj), allow_nan=False).encode()
+
+
+class Bridge:
+    """Zenoh -> Foxglove WebSocket for ``components`` (ids, or (id, plant id) pairs).
+
+    ``start()`` opens the Zenoh session, subscribes, reads each component's config and starts the Foxglove server on
+    ``host:port`` (port 0: a free one, see ``port``); ``close()`` undoes it all. ``status()``: the counters.
+    ``rate_hz``: the most messages a second each channel passes on (0: all)."""
+
+    def __init__(self, zenoh: ZenohConfig, components: list[str] | list[tuple[str, str]], prefix: str = "energyctl",
+                 port: int = 8765, rate_hz: float = 1000.0, host: str = "127.0.0.1", poll_s: float = 1.0):
+        self.zenoh = zenoh
+        self.components = [(c, c) if isinstance(c, str) else (c[0], c[1]) for c in components]
+        self.ids = [c for c, _ in self.components]
+        self.prefix, self.host, self.rate_hz, self.poll_s = prefix, host, rate_hz, poll_s
+        self._port = port
+        self.session = None
+        self.server = None
+        self.streams: list[Stream] = []
+        self._subs: list = []
+        self._params: dict[str, object] = {}  # parameter name -> value, as last read from the daemons
+        self._plock = threading.Lock()
+        self._subscribed_params: set[str] = set()
+        self._stop = threading.Event()
+        self._poller: threading.Thread | None = None
+        self.counts = {"param_gets": 0, "param_sets": 0, "param_set_errors": 0, "config_reads_failed": 0,
+                       "service_calls": 0, "service_errors": 0}
+        self._clock = threading.Lock()
+        self.last_error = ""
+
+    # ------------------------------------------------------------------------------------------------ life cycle
+
+    def start(self) -> Bridge:
+        from foxglove.websocket import Capability
+
+        import foxglove
+
+        try:
+            self.session = open_session(self.zenoh)
+            self.context = foxglove.Context()  # this bridge's channels only, not the SDK's global context
+            for cid, plant in self.components:
+                for leaf, (topic_leaf, schema_name, codec) in STREAMS.items():
+                    zkey = key(self.prefix, plant if leaf == "meas" else cid, leaf)
+                    schema = foxglove.Schema(name=schema_name, encoding="jsonschema",
+                                             data=json.dumps(json_schema(codec.model)).encode())
+                    topic = key(self.prefix, cid, topic_leaf)
+                    ch = foxglove.Channel(topic, schema=schema, message_encoding="json", context=self.context)
+                    s = Stream(zkey, topic, codec, ch, Decimator(self.rate_hz), codec.bool_positions)
+                    self.streams.append(s)
+                    self._subs.append(self.session.declare_subscriber(zkey, s.on_sample))
+            for cid in self.ids:
+                self._refresh(cid, GET_TIMEOUT_S)  # a component not up yet: its parameters come with the next get
+            self.server = foxglove.start_server(
+                name="energyctl", host=self.host, port=self._port, context=self.context,
+                capabilities=[Capability.Parameters, Capability.Services], server_listener=_listener(self),
+                supported_encodings=["json"], services=self._services())
+            self._poller = threading.Thread(target=self._poll, name="foxglove-params", daemon=True)
+            self._poller.start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    @property
+    def port(self) -> int:
+        return self.server.port if self.server is not None else self._port
+
+    def app_url(self) -> str | None:
+        return self.server.app_url() if self.server is not None else None
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._poller is not None:
+            self._poller.join(2 * GET_TIMEOUT_S + 1.0)
+            self._poller = None
+        for sub in self._subs:  # no callback logs after this
+            try:
+                sub.undeclare()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+        self._subs = []
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+        for s in self.streams:
+            s.channel.close()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def __enter__(self) -> Bridge:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def status(self) -> dict:
+        channels = {s.topic: s.status() for s in self.streams}
+        with self._clock:
+            counts = dict(self.counts)
+        with self._plock:
+            n_params = len(self._params)
+        return {"port": self.port, "components": self.ids, "rate_hz": self.rate_hz, "channels": channels,
+                "received": sum(c["received"] for c in channels.values()),
+                "logged": sum(c["logged"] for c in channels.values()),
+                "dropped": sum(c["dropped"] for c in channels.values()),
+                "invalid": sum(c["invalid"] for c in channels.values()),
+                "parameters_known": n_params, **counts, **({"last_error": self.last_error} if self.last_error else {})}
+
+    def _count(self, name: str) -> None:
+        with self._clock:
+            self.counts[name] += 1
+
+    # ------------------------------------------------------------------------------------------------ queries
+
+    def _ask(self, cid: str, what: str, sets: list[str] | None = None, timeout_s: float = GET_TIMEOUT_S) -> dict:
+        from clients.query import ask
+
+        return ask(self.session, self.prefix, cid, what, sets, timeout_s)
+
+    def _refresh(self, cid: str, timeout_s: float) -> dict[str, object] | None:
+        """Reads ``cid``'s config into the parameter cache; the parameters whose value changed, or None if the
+        daemon did not answer."""
+        from clients.query import QueryError
+
+        try:
+            reply = self._ask(cid, "config", timeout_s=timeout_s)
+        except QueryError as e:
+            self._count("config_reads_failed")
+            self.last_error = f"{cid}: {e}"
+            return None
+        return self._store(flatten_config(cid, reply))
+
+    def _store(self, values: dict[str, object]) -> dict[str, object]:
+        with self._plock:
+            changed = {k: v for k, v in values.items() if k not in self._params or self._params[k] != v}
+            self._params.update(values)
+        return changed
+
+    def _poll(self) -> None:
+        """While a Foxglove client subscribes to parameters: reread the configs every poll_s and publish changes
+        made elsewhere (energyctl query --set, another client)."""
+        while not self._stop.wait(self.poll_s):
+            with self._plock:
+                wanted = {n.split(".", 1)[0] for n in self._subscribed_params}
+            for cid in (c for c in self.ids if c in wanted):
+                changed = self._refresh(cid, GET_TIMEOUT_S)
+                server = self.server
+                if changed and server is not None and not self._stop.is_set():
+                    server.publish_parameter_values(self._parameters(changed))
+
+    @staticmethod
+    def _parameters(values: dict[str, object]) -> list:
+        from foxglove.websocket import Parameter
+
+        return [Parameter(name, value=v) for name, v in values.items()]
+
+    def get_parameters(self, names: list[str]) -> list:
+        """Foxglove getParameters: all (no names) or the named ones, as the daemons answer now (their cached values
+        if one does not answer within GET_TIMEOUT_S)."""
+        self._count("param_gets")
+        ids = self.ids if not names else [c for c in self.ids if any(n.startswith(c + ".") for n in names)]
+        for cid in ids:
+            self._refresh(cid, GET_TIMEOUT_S)
+        with self._plock:
+            values = dict(self._params) if not names else {n: self._params[n] for n in names if n in self._params}
+        return self._parameters(values)
+
+    def set_parameters(self, params: list) -> list:
+        """Foxglove setParameters: one config/set per component, with every entry for it (the daemon applies all
+        or none). Returns the parameters' values after it: the new ones, or, where the daemon refused, the values
+        still in force; a refusal is also published as an error status naming the field."""
+        from foxglove.websocket import StatusLevel
+
+        from clients.query import QueryError
+
+        self._count("param_sets")
+        by_id: dict[str, list[str]] = {}
+        names = [p.name for p in params]
+        errors = []
+        for p in params:
+            cid, _, dotted = p.name.partition(".")
+            if cid not in self.ids or not dotted:
+                errors.append(f"{p.name}: unknown parameter (expected ID.controller.<key> or ID.lifecycle, ID one "
+                              f"of {', '.join(self.ids)})")
+                continue
+            try:
+                by_id.setdefault(cid, []).append(f"{dotted}={toml_text(p.get_value())}")
+            except ValueError as e:
+                errors.append(f"{p.name}: {e}")
+        for cid, sets in by_id.items():
+            try:
+                reply = self._ask(cid, "config", sets, timeout_s=SET_TIMEOUT_S)
+            except QueryError as e:
+                errors.append(f"{cid}: config/set {sets} refused: {e}")
+                continue
+            values = flatten_config(cid, reply)
+            for s in sets:
+                if s.startswith("lifecycle="):  # handed to the loop, made at its next pass (status shows it)
+                    values[f"{cid}.lifecycle"] = s.split("=", 1)[1].strip().strip('"')
+            self._store(values)
+            if self.server is not None:
+                self.server.remove_status([f"{cid}/config/set"])
+        for text in errors:
+            self._count("param_set_errors")
+            self.last_error = text
+            print(f"energyctl foxglove: {text}", file=sys.stderr, flush=True)
+            if self.server is not None:
+                cid = text.split(":", 1)[0].split(".", 1)[0]
+                self.server.publish_status(text, StatusLevel.Error, f"{cid}/config/set")
+        with self._plock:
+            return self._parameters({n: self._params[n] for n in names if n in self._params})
+
+    def subscribe_parameters(self, names: list[str], on: bool) -> None:
+        with self._plock:
+            (self._subscribed_params.update if on else self._subscribed_params.difference_update)(names)
+
+    # ------------------------------------------------------------------------------------------------ services
+
+    def _services(self) -> list:
+        from foxglove import MessageSchema, Schema, Service, ServiceSchema
+
+        def js(name: str, schema: dict) -> MessageSchema:
+            return MessageSchema(encoding="json", schema=Schema(name=name, encoding="jsonschema",
+                                                                data=json.dumps(schema).encode()))
+
+        empty = js("energyctl.Empty", {"type": "object", "properties": {}})
+        out = []
+        for cid in self.ids:
+            for what, req, resp in (("status", empty, "energyctl.StatusReply"),
+                                    ("config", empty, "energyctl.ConfigReply"),
+                                    ("config/set", js("energyctl.ConfigSetRequest",
+                                                      REPLY_MODELS["energyctl.ConfigSetRequest"].model_json_schema()),
+                                     "energyctl.ConfigSetReply")):
+                schema = ServiceSchema(resp, request=req, response=js(resp, REPLY_MODELS[resp].model_json_schema()))
+                out.append(Service(f"{cid}/{what}", schema=schema, handler=self._handler(cid, what)))
+        return out
+
+    def _handler(self, cid: str, what: str):
+        """A service handler: the daemon's JSON answer; a refusal raises, which the SDK sends as the call's
+        failure with the daemon's text."""
+        from clients.query import QueryError
+
+        def handle(request) -> bytes:
+            self._count("service_calls")
+            sets = None
+            if what == "config/set":
+                try:
+                    sets = json.loads(request.payload or b"null")["set"]
+                    if not isinstance(sets, list) or not sets or not all(isinstance(s, str) for s in sets):
+                        raise TypeError
+                except (ValueError, TypeError, KeyError):
+                    self._count("service_errors")
+                    raise ValueError('set: expected {"set": ["key=value", ...]}') from None
+            try:
+                reply = self._ask(cid, "config" if sets else what, sets,
+                                  timeout_s=SET_TIMEOUT_S if sets else GET_TIMEOUT_S)
+            except QueryError as e:
+                self._count("service_errors")
+                raise RuntimeError(f"{cid}: {e}") from None
+            if sets:
+                self._store(flatten_config(cid, reply))
+            return finite_json(reply)
+
+        return handle
+
+
+def _listener(bridge: Bridge):
+    """A foxglove.websocket.ServerListener for the bridge's parameters. The SDK calls these on the asking client's
+    connection task: that client's stream waits until they return (a set: until the daemon answers, normally within
+    a tick, at most SET_TIMEOUT_S); other clients' streams do not."""
+    from foxglove.websocket import ServerListener
+
+    class Listener(ServerListener):
+        def on_get_parameters(self, client, param_names, request_id=None):  # noqa: ARG002
+            return bridge.get_parameters(list(param_names))
+
+        def on_set_parameters(self, client, parameters, request_id=None):  # noqa: ARG002
+            return bridge.set_parameters(list(parameters))
+
+        def on_parameters_subscribe(self, param_names):
+            bridge.subscribe_parameters(list(param_names), True)
+
+        def on_parameters_unsubscribe(self, param_names):
+            bridge.subscribe_parameters(list(param_names), False)
+
+    return Listener()

@@ -1,0 +1,261 @@
+"""energyctl foxglove: the Zenoh -> Foxglove WebSocket bridge (clients/foxglove_bridge.py), against a daemon in this
+process and a stand-in plant publishing measurements, seen by a WebSocket client speaking the Foxglove protocol."""
+
+from __future__ import annotations
+
+import json
+import struct
+import threading
+import time
+from contextlib import ExitStack
+
+import pytest
+
+pytest.importorskip("foxglove.websocket")  # not the foxglove/ layout directory of this tree
+ws_client = pytest.importorskip("websockets.sync.client")
+
+from conftest import SCENARIOS  # noqa: E402
+
+from clients.foxglove_bridge import Bridge, Decimator, parse_components, toml_text  # noqa: E402
+from clients.live import configs_from_scenario, wait_until  # noqa: E402
+from schemas.codec import MEAS  # noqa: E402
+from schemas.component import ComponentConfig, ZenohConfig, config_from_dict  # noqa: E402
+from schemas.messages import Interaction, Measurement, json_schema  # noqa: E402
+from schemas.scenario import load_scenario  # noqa: E402
+from service.daemon.bus import free_tcp_port, open_session, publisher  # noqa: E402
+from service.daemon.daemon import Daemon  # noqa: E402
+
+# foxglove-sdk 0.30 accepts only these subprotocols; it answers "foxglove.websocket.v1" alone with HTTP 400
+SUBPROTOCOLS = ["foxglove.sdk.v1"]
+RATE_HZ = 100.0  # the bridge's decimation in the live test; the plant publishes bursts of BURST back to back
+BURST = 5
+
+
+def expected_meas(seq: int) -> dict:
+    return {"seq": seq, "t": seq * 1e-3, "i": 1.0 + seq * 1e-3, "v": 80.0 + (seq % 100) * 0.01, "u": 85.0,
+            "i_load": 0.5}
+
+
+class FoxgloveClient:
+    """The few parts of the Foxglove WebSocket protocol a test needs, on a blocking websockets connection."""
+
+    def __init__(self, port: int):
+        self._stack = ExitStack()
+        self.ws = self._stack.enter_context(ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS,
+                                                              open_timeout=5.0))
+        self.channels: dict[str, dict] = {}  # topic -> advertised channel
+        self.services: dict[str, dict] = {}  # name -> advertised service
+        self.data: dict[int, list[dict]] = {}  # subscription id -> decoded messages
+        self.responses: dict[int, bytes] = {}  # call id -> service response payload
+        self.ops: list[dict] = []  # every other JSON message (parameterValues, status, serviceCallFailure, ...)
+
+    def pump(self, pred, timeout_s: float = 5.0) -> bool:
+        """Reads messages until pred() holds or timeout_s passes."""
+        deadline = time.monotonic() + timeout_s
+        while not pred():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            try:
+                self._take(self.ws.recv(timeout=left))
+            except TimeoutError:
+                return pred()
+        return True
+
+    def _take(self, m) -> None:
+        if isinstance(m, str):
+            msg = json.loads(m)
+            if msg["op"] == "advertise":
+                self.channels.update({c["topic"]: c for c in msg["channels"]})
+            elif msg["op"] == "advertiseServices":
+                self.services.update({s["name"]: s for s in msg["services"]})
+            else:
+                self.ops.append(msg)
+        elif m[0] == 1:  # messageData: subscription id u32, log time u64, payload
+            (sub,) = struct.unpack_from("<I", m, 1)
+            self.data.setdefault(sub, []).append(json.loads(m[13:]))
+        elif m[0] == 3:  # serviceCallResponse: service id u32, call id u32, encoding (u32 length), payload
+            _sid, call, n = struct.unpack_from("<III", m, 1)
+            self.responses[call] = bytes(m[13 + n:])
+
+    def send(self, msg: dict) -> None:
+        self.ws.send(json.dumps(msg))
+
+    def op(self, name: str, **match) -> dict | None:
+        for m in self.ops:
+            if m["op"] == name and all(m.get(k) == v for k, v in match.items()):
+                return m
+        return None
+
+    def call(self, service: str, request: dict, call_id: int, timeout_s: float = 5.0) -> dict:
+        """A service call: the response as JSON, or {"failure": message}."""
+        sid = self.services[service]["id"]
+        self.ws.send(struct.pack("<BIII", 2, sid, call_id, 4) + b"json" + json.dumps(request).encode())
+        assert self.pump(lambda: call_id in self.responses or self.op("serviceCallFailure", callId=call_id),
+                         timeout_s), service
+        if call_id in self.responses:
+            return json.loads(self.responses[call_id])
+        return {"failure": self.op("serviceCallFailure", callId=call_id)["message"]}
+
+    def set_parameter(self, name: str, value: float, request_id: str, timeout_s: float = 5.0) -> dict:
+        """setParameters; the answer's parameter values by name."""
+        self.send({"op": "setParameters", "parameters": [{"name": name, "value": value, "type": "float64"}],
+                   "id": request_id})
+        assert self.pump(lambda: self.op("parameterValues", id=request_id), timeout_s), request_id
+        return {p["name"]: p.get("value") for p in self.op("parameterValues", id=request_id)["parameters"]}
+
+    def close(self) -> None:
+        self._stack.close()
+
+
+def test_decimation_keeps_at_most_the_rate():
+    d = Decimator(1000.0)  # 1 ms
+    kept = sum(d.keep(k * 100_000) for k in range(100_000))  # 10 kHz for 10 s
+    assert 10_000 <= kept <= 10_002
+    d = Decimator(1000.0)
+    assert sum(d.keep(5_000_000_000) for _ in range(50)) == 1  # a burst at one instant passes one message
+    assert d.keep(5_001_000_000) and not d.keep(5_001_400_000) and d.keep(5_001_500_000)
+    assert all(Decimator(0).keep(0) for _ in range(10))  # 0: no decimation
+
+
+def test_components_and_parameter_values():
+    assert parse_components("source, b:rig") == [("source", "source"), ("b", "rig")]
+    with pytest.raises(ValueError, match="component id"):
+        parse_components("a/b")
+    assert [toml_text(v) for v in (800, 800.0, 1e-4, True, "energy", [1.0, 2])] == \
+        ["800", "800.0", "0.0001", "true", '"energy"', "[1.0, 2]"]
+    with pytest.raises(ValueError, match="unset"):
+        toml_text(None)
+
+
+@pytest.fixture
+def stack(tmp_path):
+    """A daemon for component "source" in this process (clock trigger, 1 kHz, no neighbours, no log) on a free
+    loopback port, and a stand-in plant publishing measurements on energyctl/source/meas in bursts of BURST."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _plant, _load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=1000.0)
+    comp["neighbours"] = []
+    comp["loop"]["trigger"] = "clock"
+    comp["forecast"] = {"enabled": False}
+    for k in ("local_reference_W", "nice"):
+        comp.pop(k, None)
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    loop = threading.Thread(target=d.run_loop, daemon=True)
+    loop.start()
+    stop = threading.Event()
+    plant = open_session(ZenohConfig(mode="peer", connect=[ep]))
+    pub = publisher(plant, "energyctl/source/meas")
+
+    def run_plant():
+        seq = 0
+        while not stop.wait(0.01):
+            for _ in range(BURST):
+                m = expected_meas(seq)
+                pub.put(MEAS.encode(m["seq"], m["t"], m["i"], m["v"], m["u"], m["i_load"]))
+                seq += 1
+
+    pt = threading.Thread(target=run_plant, daemon=True)
+    pt.start()
+    try:
+        yield d, ep
+    finally:
+        stop.set()
+        pt.join(2.0)
+        pub.undeclare()
+        plant.close()
+        d.stop()
+        loop.join(2.0)
+        d.close()
+
+
+def test_the_bridge_streams_sets_and_serves(stack):
+    d, ep = stack
+    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, rate_hz=RATE_HZ)
+    client = None
+    try:
+        t_start = time.monotonic()  # before its subscribers exist
+        bridge.start()
+        assert bridge.port > 0
+        client = FoxgloveClient(bridge.port)
+        topics = {"energyctl/source/meas", "energyctl/source/cmd", "energyctl/source/z_out"}
+        services = {"source/status", "source/config", "source/config/set"}
+        assert client.pump(lambda: topics <= set(client.channels) and services <= set(client.services))
+        meas = client.channels["energyctl/source/meas"]
+        assert (meas["encoding"], meas["schemaName"], meas["schemaEncoding"]) == \
+            ("json", "energyctl.Measurement", "jsonschema")
+        assert json.loads(meas["schema"]) == json_schema(Measurement)  # the daemon's MCAP log carries this one
+        assert client.channels["energyctl/source/cmd"]["schemaName"] == "energyctl.Command"
+        assert client.channels["energyctl/source/z_out"]["schemaName"] == "energyctl.Interaction"
+
+        # the measurements arrive decoded, field for field; the daemon's commands too
+        client.send({"op": "subscribe", "subscriptions": [
+            {"id": k, "channelId": client.channels[f"energyctl/source/{leaf}"]["id"]}
+            for k, leaf in ((1, "meas"), (2, "cmd"), (3, "z_out"))]})
+        assert client.pump(lambda: len(client.data.get(1, [])) >= 20 and client.data.get(2) and client.data.get(3),
+                           10.0), {k: len(v) for k, v in client.data.items()}
+        got = client.data[1]
+        assert all(m == expected_meas(m["seq"]) for m in got), got[:3]
+        assert [m["seq"] for m in got] == sorted({m["seq"] for m in got})  # in order, no repeats
+        cmd = client.data[2][-1]
+        assert set(cmd) == {"seq", "t", "du_dt", "du_dt_next", "limited"} and isinstance(cmd["limited"], bool)
+        assert set(client.data[3][-1]) == set(json_schema(Interaction)["properties"])
+
+        # parameters: the controller config, one parameter per setting
+        client.send({"op": "getParameters", "parameterNames": [], "id": "g1"})
+        assert client.pump(lambda: client.op("parameterValues", id="g1"))
+        params = {p["name"]: p.get("value") for p in client.op("parameterValues", id="g1")["parameters"]}
+        assert params["source.controller.K_per_s"] == 2000.0
+        assert params["source.controller.limits.du_dt_max_V_per_s"] > 0
+        assert params["source.lifecycle"] in ("active", "degraded")
+
+        # a set goes to config/set: applied in the daemon, the new value is what Foxglove sees
+        assert client.set_parameter("source.controller.K_per_s", 800.0, "s1")["source.controller.K_per_s"] == 800.0
+        assert d.core.cfg.K_per_s == 800.0
+        cfg = client.call("source/config", {}, 1)
+        assert cfg["controller"]["K_per_s"] == 800.0 and cfg["config_version"] == 1
+        st = client.call("source/status", {}, 2)
+        assert st["id"] == "source" and st["config_version"] == 1
+
+        # a refused set: an error status naming the field, and the value still in force
+        assert client.set_parameter("source.controller.K_per_s", -1.0, "s2")["source.controller.K_per_s"] == 800.0
+        assert client.pump(lambda: client.op("status", level=2))
+        err = client.op("status", level=2)["message"]
+        assert "K_per_s" in err and "greater than 0" in err, err
+        assert d.core.cfg.K_per_s == 800.0
+        # the same through the config/set service: the call fails with the daemon's text
+        fail = client.call("source/config/set", {"set": ["controller.K_per_s=-5"]}, 3)
+        assert "K_per_s" in fail["failure"], fail
+
+        # the counters: decimated to RATE_HZ a channel (the plant sends bursts of 5 within microseconds)
+        elapsed = time.monotonic() - t_start
+        s = bridge.status()["channels"]["energyctl/source/meas"]
+        assert s["received"] > 0 and s["logged"] >= 20 and s["dropped"] > 0 and s["invalid"] == 0
+        assert s["logged"] + s["dropped"] + s["unsubscribed"] <= s["received"]
+        assert s["logged"] + s["unsubscribed"] <= RATE_HZ * elapsed + 2
+        st = bridge.status()
+        assert st["param_sets"] == 2 and st["param_set_errors"] == 1 and st["service_errors"] == 1
+    finally:
+        if client is not None:
+            client.close()
+        bridge.close()
+
+
+def test_a_component_that_does_not_answer_still_streams_and_its_services_fail(stack):
+    """A component id no daemon serves: the bridge starts (no parameters for it), its services fail naming it."""
+    _d, ep = stack
+    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["ghost"], port=0)
+    client = None
+    try:
+        bridge.start()
+        assert bridge.status()["config_reads_failed"] == 1
+        client = FoxgloveClient(bridge.port)
+        assert client.pump(lambda: "ghost/status" in client.services)
+        fail = client.call("ghost/status", {}, 1, timeout_s=5.0)
+        assert "ghost" in fail["failure"] and "no answer" in fail["failure"]
+        assert wait_until(lambda: bridge.status()["service_errors"] == 1, 2.0)
+    finally:
+        if client is not None:
+            client.close()
+        bridge.close()
