@@ -57,8 +57,9 @@ class SourceConfig(CircuitParams):
                                                 "(relative to the other sources' shares)")
     connected: bool = Field(default=True, description="its line breakers start closed; false: it starts idle, "
                                                       "disconnected, until a connect event")
-    v0_V: Pos | None = Field(default=None, description="initial terminal voltage, V; default: the network's "
-                                                       "nominal_v_V")
+    v0_V: Pos | None = Field(default=None, description="initial terminal voltage with start = \"rest\", V; "
+                                                       "default: the network's nominal_v_V (a steady start "
+                                                       "computes it)")
 
     def model_params(self) -> CircuitParams:
         """The controller's (wrong) model of this source."""
@@ -71,7 +72,8 @@ class BusConfig(Strict):
 
     C_F: Pos = Field(description="bus capacitance, F (a bus without capacitance is refused: the node needs a "
                                  "state)")
-    v0_V: Pos | None = Field(default=None, description="initial voltage, V; default: the network's nominal_v_V")
+    v0_V: Pos | None = Field(default=None, description="initial voltage with start = \"rest\", V; default: the "
+                                                       "network's nominal_v_V (a steady start computes it)")
 
 
 class LineConfig(Strict):
@@ -124,7 +126,8 @@ class EventConfig(Strict):
 class LinkConfig(Strict):
     """How the interaction variables reach the controllers: delay and loss (per receiving source, or all)."""
 
-    delay_s: NonNeg = Field(default=0.0, description="extra delay of each interaction message, s")
+    delay_s: NonNeg = Field(default=0.0, description="extra delay of each interaction message, s (whole control "
+                                                     "periods: rounded to the nearest)")
     loss: Annotated[float, Field(ge=0, lt=1)] = Field(default=0.0, description="probability a message is lost, "
                                                                                "seeded")
     silent_from_s: NonNeg | None = Field(default=None, description="from this time on no message arrives, s")
@@ -188,7 +191,8 @@ class NetworkScenario(Strict):
                                  "load axis)")
     layer: LayerConfig = LayerConfig()
     links: dict[str, LinkConfig] = Field(default={}, description="interaction-message delay and loss, by receiving "
-                                                                 "source name, or '*' for all")
+                                                                 "source name, or '*' for all (a source's own entry "
+                                                                 "sets its keys on top of '*')")
     base_dir: str = Field(default=".", description="directory for relative csv paths (set by the loader)")
 
     @field_validator("sources")

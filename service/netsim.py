@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.network import NetworkScenario
+from schemas.network import LinkConfig, NetworkScenario
 from service.core import core_metadata, effective_gain, make_core
 from service.core.feasibility import FeasibilityMonitor, incoming_range, load_box, tau_prime
 from service.core.interaction import outgoing_power_at
@@ -107,8 +107,8 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     # links: per receiving source, (delay in samples, loss, silent from)
     links = []
     for name in names:
-        ln = net.links.get(name) or net.links.get("*")
-        links.append((int(round(ln.delay_s / T)), ln.loss, ln.silent_from_s) if ln else (0, 0.0, None))
+        ln = link_of(net, name)
+        links.append((int(round(ln.delay_s / T)), ln.loss, ln.silent_from_s))
     link_rng = np.random.default_rng([net.seed, 0x11CC])
     inbox: list[deque] = [deque() for _ in range(ns)]  # (arrival sample, t sent, P_in)
     got = [(-math.inf, 0.0, 0.0)] * ns  # (t sent, P_in W, its rate W/s) of the newest P^{r,in} each source received
@@ -251,6 +251,13 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     res.events.sort(key=lambda e: e.t)
     res.metrics = network_metrics(res, diverged_at, ctls)
     return res
+
+
+def link_of(net: NetworkScenario, source: str) -> LinkConfig:
+    """The link to a source: the '*' entry, with what the source's own entry sets on top of it."""
+    base = net.links.get("*") or LinkConfig()
+    own = net.links.get(source)
+    return base if own is None else base.model_copy(update={k: getattr(own, k) for k in own.model_fields_set})
 
 
 def window_box(plant: NetworkPlant, net: NetworkScenario, k: int, loss_frac: float = 0.0

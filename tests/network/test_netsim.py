@@ -221,3 +221,11 @@ def test_light_load_in_the_ring_breaks_the_mapping_that_divides_by_i():
     m = _run("ring").metrics
     assert not m["diverged"] and m["sources"]["S4"]["final_mode"] == "active"
     assert abs(m["sources"]["S4"]["sharing_error_pp"]) <= 2.0
+
+
+def test_a_source_s_own_link_entry_adds_to_the_common_one():
+    from service.netsim import link_of
+
+    net = load_network(NET / "two-source.toml", ["links.*.delay_s=0.005", "links.S2.loss=0.1"])
+    assert (link_of(net, "S1").delay_s, link_of(net, "S1").loss) == (0.005, 0.0)
+    assert (link_of(net, "S2").delay_s, link_of(net, "S2").loss) == (0.005, 0.1)
