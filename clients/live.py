@@ -248,8 +248,12 @@ def _exit_on_term(signum, frame):
 def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | None, duration_s: float | None,
              controller_delay: int | None = None, workdir: str | None = None, timeout_s: float = 300.0,
              secure: bool = False, tls: bool = False, loop: dict | None = None, nice: int | None = None,
-             cpus: dict[str, list[int]] | None = None) -> dict:
+             cpus: dict[str, list[int]] | None = None, extra=None) -> dict:
     """Start controller, load and plant on a free loopback port; wait for the plant; stop the rest.
+
+    ``extra(endpoint, procs, env)``: called after the daemon and the load started and before the plant, to start
+    more processes beside them (procs.start; they are stopped with the rest); what it returns is the result's
+    "extra", and its processes' outputs are in "extra_outputs" (by name: returncode, stdout, stderr).
 
     ``secure``: the three connect as Zenoh clients, each with its own credentials, to a router that
     enforces the secure profile (``clients.secure``), written to the work directory first; ``tls``: over
@@ -280,6 +284,7 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
                 raise RuntimeError(f"the router did not listen on {ep} within 15 s")
         procs.start("daemon", ["run", "--config", str(paths["component"]), "--stats-out", str(stats_path)], env=env)
         procs.start("load", ["load", "--config", str(paths["load"])], env=env)
+        extra_res = extra(ep, procs, env) if extra is not None else None
         p = procs.start("plant", ["plant", "--config", str(paths["plant"]), "--json"], env=env)
         try:
             so, se = p.communicate(timeout=timeout_s)
@@ -295,6 +300,9 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
     res["daemon_log"] = (res["daemon"].get("logging") or {}).get("path")
     res.setdefault("cpu", {})["controller_pct"] = (res["daemon"].get("loop") or {}).get("cpu_pct")
     res["cpu"]["load_pct"] = _last_json(results.get("load", (None, "", ""))[1]).get("cpu_pct")
+    if extra is not None:
+        res["extra"] = extra_res
+        res["extra_outputs"] = {k: v for k, v in results.items() if k not in ("daemon", "load", "plant", "router")}
     return res
 
 

@@ -113,6 +113,18 @@ def _middleware(args: argparse.Namespace) -> dict:
     return bench_middleware(n=args.n or 3000, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
 
 
+def _foxglove(args: argparse.Namespace) -> dict:
+    from clients.bench.foxglove import bench_foxglove
+
+    realtime = args.realtime
+    sets = [*(DEMO_REALTIME_SETS if realtime else []), *(args.set or [])]
+    return bench_foxglove(load(_scenario(args), sets), seconds=args.seconds or 2.0, pairs=args.runs,
+                          lockstep=not realtime, rate_hz=float(args.rates) if (realtime and args.rates) else
+                          (DEMO_REALTIME_HZ if realtime else None),
+                          delay=DEMO_REALTIME_DELAY if realtime else None,
+                          progress=lambda r: print(f"  {json.dumps(r)[:300]}", file=sys.stderr, flush=True))
+
+
 def _network(args: argparse.Namespace) -> dict:
     from clients.bench.network import bench_network
 
@@ -139,6 +151,9 @@ BENCHES: dict[str, Bench] = {
     "recovery": Bench(_recovery, "kill -9 plant / neighbour, time back to +-2 %"),
     "wake": Bench(_wake, "how late a 60 us timed wait ends at the kernel's default timer slack and at "
                          "timer_slack_ns's"),
+    "foxglove": Bench(_foxglove, "the Foxglove bridge's cost to the stack it watches: daemon overruns and the run's "
+                                 "wall time without and with it (alternated, --runs pairs), its CPU share "
+                                 "(--realtime: wall-clock pacing, --rates one rate)"),
     "network": Bench(_network, "a network's offline cost per source per tick at 2, 4, 8 and 16 sources (radial "
                                "feeders; --seconds simulated each, default 0.2)"),
     "middleware": Bench(_middleware, "the Zenoh and MCAP facts the daemon's design rests on, re-measured: put cost, "

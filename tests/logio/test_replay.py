@@ -150,7 +150,8 @@ def test_foxglove_layout_plots_only_channels_the_daemon_writes(tmp_path):
     channels.add("energyctl/source/events")  # written only when something happens
     assert wanted <= channels, wanted - channels
     # and every plotted field is a field of that channel's schema (the JSON Schema Foxglove reads)
-    schema_of = {"meas": "Measurement", "cmd": "Command", "est": "Estimate", "z_in": "TickInput", "z": "Interaction"}
+    schema_of = {"meas": "Measurement", "cmd": "Command", "est": "Estimate", "z_in": "TickInput", "z": "Interaction",
+                 "z_out": "Interaction"}
     plotted = re.findall(r'\\"energyctl/source/([a-z_]+)\\"\.([A-Za-z_0-9]+)', text)
     assert ("cmd", "du_dt_next") in plotted
     for topic, fld in plotted:
