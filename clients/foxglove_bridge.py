@@ -19,6 +19,20 @@ The channel topics and schemas are those of the daemon's MCAP log (JSON encoding
 Schemas), so a Foxglove layout made for a recording works live and the other way round. Each channel keeps at
 most ``rate_hz`` messages a second (the rest are counted as dropped); a channel no Foxglove client subscribes
 to is not decoded at all. Zenoh's callback threads only decode and hand the JSON to the SDK.
+
+The connection graph (Foxglove's Topic Graph panel) shows every component under PREFIX that holds its liveliness
+token ``PREFIX/ID/alive`` (not only the bridged ones), with Zenoh keys as topics and component ids as nodes:
+
+* every live one (a controller or a load) publishes ``PREFIX/ID/z``;
+* one that answers its status query (a controller) also publishes ``PREFIX/ID/cmd``, subscribes to
+  ``PREFIX/PLANT/meas`` and to ``PREFIX/N/z`` of each neighbour N, and provides the services ``PREFIX/ID/status``,
+  ``PREFIX/ID/config`` and ``PREFIX/ID/config/set``.
+
+So an interaction link is a topic ``PREFIX/N/z`` from N to the controllers that have N among their neighbours
+(the ids in the status reply's ``neighbours``; the config reply has only the controller settings). PLANT is the
+id given as ``ID:PLANT`` in the component list, else ID (no query tells a controller's plant id). A token that
+appears is followed by a status query (at most GET_TIMEOUT_S, on the graph's own thread), then an update; a
+token that goes away (the component closed, or its session was lost) removes the component at once.
 """
 
 from __future__ import annotations
@@ -29,6 +43,8 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
+
+import zenoh
 
 from schemas.codec import CMD, MEAS, Codec, DecodeError, Z
 from schemas.component import ZenohConfig
@@ -184,6 +200,41 @@ def finite_json(obj) -> bytes:
     return json.dumps(clean(obj), allow_nan=False).encode()
 
 
+@dataclass(frozen=True)
+class Node:
+    """A live component as the connection graph shows it: ``controller`` if it answered its status query (then
+    ``neighbours``: the ids whose interaction messages it reads)."""
+
+    controller: bool = False
+    neighbours: tuple[str, ...] = ()
+
+
+Graph = tuple[dict[str, tuple[str, ...]], dict[str, tuple[str, ...]], dict[str, tuple[str, ...]]]
+
+
+def connection_graph(prefix: str, nodes: dict[str, Node], plants: dict[str, str]) -> Graph:
+    """(published, subscribed, services): Zenoh key -> the ids publishing / subscribing / providing it, sorted.
+    Every topic is in both maps (an empty tuple where nobody is): foxglove-sdk 0.30.3 sends a graph update as a
+    difference, and a topic left out of one map while still in the other does not reach the client, so a
+    publisher that goes away from a topic still subscribed would not be seen leaving."""
+    pub: dict[str, set[str]] = {}
+    sub: dict[str, set[str]] = {}
+    srv: dict[str, set[str]] = {}
+    for cid, n in nodes.items():
+        pub.setdefault(key(prefix, cid, "z"), set()).add(cid)
+        if not n.controller:
+            continue
+        pub.setdefault(key(prefix, cid, "cmd"), set()).add(cid)
+        sub.setdefault(key(prefix, plants.get(cid, cid), "meas"), set()).add(cid)
+        for nb in n.neighbours:
+            sub.setdefault(key(prefix, nb, "z"), set()).add(cid)
+        for what in ("status", "config", "config/set"):
+            srv.setdefault(key(prefix, cid, what), set()).add(cid)
+    topics = sorted(pub.keys() | sub.keys())
+    return ({t: tuple(sorted(pub.get(t, ()))) for t in topics}, {t: tuple(sorted(sub.get(t, ()))) for t in topics},
+            {k: tuple(sorted(v)) for k, v in sorted(srv.items())})
+
+
 class Bridge:
     """Zenoh -> Foxglove WebSocket for ``components`` (ids, or (id, plant id) pairs).
 
@@ -211,6 +262,15 @@ class Bridge:
                        "service_calls": 0, "service_errors": 0}
         self._clock = threading.Lock()
         self.last_error = ""
+        # the connection graph: live components (by their liveliness tokens), kept by the graph thread
+        self.plants = {c: p for c, p in self.components}
+        self.nodes: dict[str, Node] = {}
+        self._graph: Graph | None = None  # as last published
+        self._glock = threading.Lock()  # nodes and _graph; never held by an SDK callback (see _listener)
+        self._alive_sub = None
+        self._watcher: threading.Thread | None = None
+        self.graph_subscribed = threading.Event()  # a Foxglove client follows the graph (the SDK's hooks)
+        self.graph_counts = {"tokens_seen": 0, "tokens_gone": 0, "status_unanswered": 0, "graph_updates": 0}
 
     # ------------------------------------------------------------------------------------------------ life cycle
 
@@ -236,8 +296,16 @@ class Bridge:
                 self._refresh(cid, GET_TIMEOUT_S)  # a component not up yet: its parameters come with the next get
             self.server = foxglove.start_server(
                 name="energyctl", host=self.host, port=self._port, context=self.context,
-                capabilities=[Capability.Parameters, Capability.Services], server_listener=_listener(self),
-                supported_encodings=["json"], services=self._services())
+                capabilities=[Capability.Parameters, Capability.Services, Capability.ConnectionGraph],
+                server_listener=_listener(self), supported_encodings=["json"], services=self._services())
+            self._publish_graph()  # empty until the tokens come: what a client subscribing now is sent
+            # the tokens, those already declared first (history); a channel read by the graph thread, no Python
+            # callback (dropping one at close can deadlock zenoh-python against the GIL)
+            self._alive_sub = self.session.liveliness().declare_subscriber(
+                key(self.prefix, "*", "alive"), zenoh.handlers.FifoChannel(256), history=True)
+            self._watcher = threading.Thread(target=self._watch, args=(self._alive_sub.handler,),
+                                             name="foxglove-graph", daemon=True)
+            self._watcher.start()
             self._poller = threading.Thread(target=self._poll, name="foxglove-params", daemon=True)
             self._poller.start()
         except BaseException:
@@ -257,6 +325,15 @@ class Bridge:
         if self._poller is not None:
             self._poller.join(2 * GET_TIMEOUT_S + 1.0)
             self._poller = None
+        if self._alive_sub is not None:
+            try:
+                self._alive_sub.undeclare()  # closes its channel: the graph thread's recv ends
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+            self._alive_sub = None
+        if self._watcher is not None:
+            self._watcher.join(GET_TIMEOUT_S + 1.0)  # it may be in a status query
+            self._watcher = None
         for sub in self._subs:  # no callback logs after this
             try:
                 sub.undeclare()
@@ -284,12 +361,17 @@ class Bridge:
             counts = dict(self.counts)
         with self._plock:
             n_params = len(self._params)
+        with self._glock:
+            graph = {"live": {c: {"controller": n.controller, "neighbours": list(n.neighbours)}
+                              for c, n in sorted(self.nodes.items())},
+                     "subscribed": self.graph_subscribed.is_set(), **self.graph_counts}
         return {"port": self.port, "components": self.ids, "rate_hz": self.rate_hz, "channels": channels,
                 "received": sum(c["received"] for c in channels.values()),
                 "logged": sum(c["logged"] for c in channels.values()),
                 "dropped": sum(c["dropped"] for c in channels.values()),
                 "invalid": sum(c["invalid"] for c in channels.values()),
-                "parameters_known": n_params, **counts, **({"last_error": self.last_error} if self.last_error else {})}
+                "parameters_known": n_params, "graph": graph, **counts,
+                **({"last_error": self.last_error} if self.last_error else {})}
 
     def _count(self, name: str) -> None:
         with self._clock:
@@ -399,6 +481,67 @@ class Bridge:
         with self._plock:
             (self._subscribed_params.update if on else self._subscribed_params.difference_update)(names)
 
+    # ------------------------------------------------------------------------------------------------ graph
+
+    def _watch(self, tokens) -> None:
+        """The graph thread: each liveliness token that appears (then the component's status query) or goes away
+        updates the graph, published at once."""
+        head = self.prefix.rstrip("/") + "/"
+        while True:
+            try:
+                sample = tokens.recv()
+            except Exception:  # noqa: BLE001 - the subscriber was undeclared (close): its channel is closed
+                return
+            k = str(sample.key_expr)
+            if not (k.startswith(head) and k.endswith("/alive")):
+                continue
+            cid = k[len(head):-len("/alive")]
+            if sample.kind == zenoh.SampleKind.PUT:
+                node = self._probe(cid)
+                with self._glock:
+                    self.graph_counts["tokens_seen"] += 1
+                    self.nodes[cid] = node
+            else:
+                with self._glock:
+                    self.graph_counts["tokens_gone"] += 1
+                    self.nodes.pop(cid, None)
+            if self._stop.is_set():
+                return
+            self._publish_graph()
+
+    def _probe(self, cid: str) -> Node:
+        """A component whose token appeared: a controller (with its neighbours) if it answers its status query."""
+        from clients.query import QueryError
+
+        try:
+            reply = self._ask(cid, "status", timeout_s=GET_TIMEOUT_S)
+        except QueryError:
+            with self._glock:
+                self.graph_counts["status_unanswered"] += 1
+            return Node()
+        return Node(True, tuple(sorted(reply.get("neighbours") or {})))
+
+    def _publish_graph(self) -> None:
+        """Publishes the graph of self.nodes if it changed (never from an SDK callback: the SDK deadlocks)."""
+        from foxglove import ConnectionGraph
+
+        with self._glock:
+            graph = connection_graph(self.prefix, self.nodes, self.plants)
+            server = self.server
+            if graph == self._graph or server is None:
+                return
+            published, subscribed, services = graph
+            g = ConnectionGraph()
+            for t, ids in published.items():
+                g.set_published_topic(t, list(ids))
+            for t, ids in subscribed.items():
+                g.set_subscribed_topic(t, list(ids))
+            for name, ids in services.items():
+                g.set_advertised_service(name, list(ids))
+            server.publish_connection_graph(g)
+            self._graph = graph
+            self.graph_counts["graph_updates"] += 1
+
     # ------------------------------------------------------------------------------------------------ services
 
     def _services(self) -> list:
@@ -467,5 +610,12 @@ def _listener(bridge: Bridge):
 
         def on_parameters_unsubscribe(self, param_names):
             bridge.subscribe_parameters(list(param_names), False)
+
+        # the SDK sends a new subscriber the graph as last published; publishing from here would deadlock it
+        def on_connection_graph_subscribe(self):
+            bridge.graph_subscribed.set()
+
+        def on_connection_graph_unsubscribe(self):
+            bridge.graph_subscribed.clear()
 
     return Listener()

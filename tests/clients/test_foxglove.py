@@ -7,7 +7,7 @@ import json
 import struct
 import threading
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 
 import pytest
 
@@ -16,7 +16,7 @@ ws_client = pytest.importorskip("websockets.sync.client")
 
 from conftest import SCENARIOS  # noqa: E402
 
-from clients.foxglove_bridge import Bridge, Decimator, parse_components, toml_text  # noqa: E402
+from clients.foxglove_bridge import Bridge, Decimator, Node, connection_graph, parse_components, toml_text  # noqa: E402
 from clients.live import configs_from_scenario, wait_until  # noqa: E402
 from schemas.codec import MEAS  # noqa: E402
 from schemas.component import ComponentConfig, ZenohConfig, config_from_dict  # noqa: E402
@@ -48,6 +48,9 @@ class FoxgloveClient:
         self.data: dict[int, list[dict]] = {}  # subscription id -> decoded messages
         self.responses: dict[int, bytes] = {}  # call id -> service response payload
         self.ops: list[dict] = []  # every other JSON message (parameterValues, status, serviceCallFailure, ...)
+        # the connection graph as the updates so far make it: name -> ids
+        self.graph = {"published": {}, "subscribed": {}, "services": {}}
+        self.graph_updates = 0
 
     def pump(self, pred, timeout_s: float = 5.0) -> bool:
         """Reads messages until pred() holds or timeout_s passes."""
@@ -69,6 +72,8 @@ class FoxgloveClient:
                 self.channels.update({c["topic"]: c for c in msg["channels"]})
             elif msg["op"] == "advertiseServices":
                 self.services.update({s["name"]: s for s in msg["services"]})
+            elif msg["op"] == "connectionGraphUpdate":
+                self._graph_update(msg)
             else:
                 self.ops.append(msg)
         elif m[0] == 1:  # messageData: subscription id u32, log time u64, payload
@@ -77,6 +82,18 @@ class FoxgloveClient:
         elif m[0] == 3:  # serviceCallResponse: service id u32, call id u32, encoding (u32 length), payload
             _sid, call, n = struct.unpack_from("<III", m, 1)
             self.responses[call] = bytes(m[13 + n:])
+
+    def _graph_update(self, msg: dict) -> None:
+        g = self.graph
+        g["published"].update({t["name"]: sorted(t["publisherIds"]) for t in msg["publishedTopics"]})
+        g["subscribed"].update({t["name"]: sorted(t["subscriberIds"]) for t in msg["subscribedTopics"]})
+        g["services"].update({t["name"]: sorted(t["providerIds"]) for t in msg["advertisedServices"]})
+        for name in msg["removedTopics"]:
+            g["published"].pop(name, None)
+            g["subscribed"].pop(name, None)
+        for name in msg["removedServices"]:
+            g["services"].pop(name, None)
+        self.graph_updates += 1
 
     def send(self, msg: dict) -> None:
         self.ws.send(json.dumps(msg))
@@ -128,14 +145,15 @@ def test_components_and_parameter_values():
         toml_text(None)
 
 
-@pytest.fixture
-def stack(tmp_path):
-    """A daemon for component "source" in this process (clock trigger, 1 kHz, no neighbours, no log) on a free
-    loopback port, and a stand-in plant publishing measurements on energyctl/source/meas in bursts of BURST."""
+@contextmanager
+def daemon_stack(neighbours: list[str]):
+    """A daemon for component "source" in this process (clock trigger, 1 kHz, these neighbours, no log) on a free
+    loopback port, and a stand-in plant publishing measurements on energyctl/source/meas in bursts of BURST:
+    (daemon, endpoint, its loop thread). Stopping and closing the daemon earlier is allowed."""
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     comp, _plant, _load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=1000.0)
-    comp["neighbours"] = []
+    comp["neighbours"] = neighbours
     comp["loop"]["trigger"] = "clock"
     comp["forecast"] = {"enabled": False}
     for k in ("local_reference_W", "nice"):
@@ -159,7 +177,7 @@ def stack(tmp_path):
     pt = threading.Thread(target=run_plant, daemon=True)
     pt.start()
     try:
-        yield d, ep
+        yield d, ep, loop
     finally:
         stop.set()
         pt.join(2.0)
@@ -168,6 +186,13 @@ def stack(tmp_path):
         d.stop()
         loop.join(2.0)
         d.close()
+
+
+@pytest.fixture
+def stack():
+    """daemon_stack without neighbours: (daemon, endpoint)."""
+    with daemon_stack([]) as (d, ep, _loop):
+        yield d, ep
 
 
 def test_the_bridge_streams_sets_and_serves(stack):
@@ -259,3 +284,56 @@ def test_a_component_that_does_not_answer_still_streams_and_its_services_fail(st
         if client is not None:
             client.close()
         bridge.close()
+
+
+def test_the_graph_of_components():
+    """connection_graph: each live component's keys; a controller's plant, neighbours and services."""
+    nodes = {"a": Node(True, ("load",)), "b": Node(True, ("a",)), "load": Node()}
+    pub, sub, srv = connection_graph("p", nodes, {"b": "rig"})
+    assert pub == {"p/a/z": ("a",), "p/a/cmd": ("a",), "p/b/z": ("b",), "p/b/cmd": ("b",), "p/load/z": ("load",),
+                   "p/a/meas": (), "p/rig/meas": ()}
+    assert sub == {"p/a/meas": ("a",), "p/rig/meas": ("b",), "p/load/z": ("a",), "p/a/z": ("b",), "p/a/cmd": (),
+                   "p/b/z": (), "p/b/cmd": ()}
+    assert srv["p/b/config/set"] == ("b",) and len(srv) == 6
+    assert connection_graph("p", {"load": Node()}, {}) == ({"p/load/z": ("load",)}, {"p/load/z": ()}, {})
+
+
+def test_the_connection_graph_follows_liveliness():
+    """A client subscribed to the connection graph gets the controller with its keys and the interaction link
+    from its neighbour, and an update each time a liveliness token goes away."""
+    src = {"energyctl/source/status": ["source"], "energyctl/source/config": ["source"],
+           "energyctl/source/config/set": ["source"]}
+    with ExitStack() as stack:
+        d, ep, loop = stack.enter_context(daemon_stack(["load"]))
+        load = open_session(ZenohConfig(mode="peer", connect=[ep]))  # the neighbour: only its token here
+        stack.callback(load.close)
+        token = load.liveliness().declare_token("energyctl/load/alive")
+        bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0)
+        stack.callback(bridge.close)
+        bridge.start()
+        client = FoxgloveClient(bridge.port)
+        stack.callback(client.close)
+        client.send({"op": "subscribeConnectionGraph"})
+        g = client.graph
+        assert client.pump(lambda: g["published"].get("energyctl/load/z") == ["load"]
+                           and g["published"].get("energyctl/source/cmd") == ["source"], 10.0), g
+        assert g["published"] == {"energyctl/source/z": ["source"], "energyctl/source/cmd": ["source"],
+                                  "energyctl/load/z": ["load"], "energyctl/source/meas": []}
+        assert g["subscribed"] == {"energyctl/source/meas": ["source"], "energyctl/load/z": ["source"],
+                                   "energyctl/source/z": [], "energyctl/source/cmd": []}
+        assert g["services"] == src
+
+        # the neighbour goes: its link stays as the controller's subscription, with no publisher
+        n = client.graph_updates
+        token.undeclare()
+        assert client.pump(lambda: client.graph_updates > n and g["published"]["energyctl/load/z"] == [], 10.0), g
+        assert g["subscribed"]["energyctl/load/z"] == ["source"] and g["services"] == src
+
+        # the controller goes (closed: its token with it): nothing is left
+        n = client.graph_updates
+        d.stop()
+        loop.join(5.0)
+        d.close()
+        assert client.pump(lambda: client.graph_updates > n and not any(g.values()), 10.0), g
+        st = bridge.status()["graph"]
+        assert st["live"] == {} and st["subscribed"] and st["tokens_seen"] == 2 and st["tokens_gone"] == 2
