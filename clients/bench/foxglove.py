@@ -30,10 +30,12 @@ def _cpu_s(pid: int) -> float | None:
 class _Watcher(threading.Thread):
     """A Foxglove WebSocket client that subscribes to every advertised channel and counts what arrives."""
 
-    def __init__(self, port: int, stop: threading.Event):
+    def __init__(self, port: int, stop: threading.Event, keep_topic: str | None = None):
+        """keep_topic: the decoded JSON messages of this channel are kept in ``kept``."""
         super().__init__(daemon=True)
         self.port, self.stop, self.messages, self.error = port, stop, 0, ""
         self.subscribed = threading.Event()
+        self.keep_topic, self.kept, self._keep_sub = keep_topic, [], None
 
     def run(self) -> None:
         from websockets.sync.client import connect
@@ -62,6 +64,9 @@ class _Watcher(threading.Thread):
                     return
                 if isinstance(msg, bytes):
                     self.messages += 1
+                    # message data: opcode 1, subscription id (u32), receive time (u64), then the payload
+                    if msg[0] == 1 and int.from_bytes(msg[1:5], "little") == self._keep_sub:
+                        self.kept.append(json.loads(msg[13:]))
                     continue
                 d = json.loads(msg)
                 if d.get("op") == "advertise":
@@ -69,11 +74,13 @@ class _Watcher(threading.Thread):
                     for ch in d["channels"]:
                         sub_id += 1
                         subs.append({"id": sub_id, "channelId": ch["id"]})
+                        if ch["topic"] == self.keep_topic:
+                            self._keep_sub = sub_id
                     ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
                     self.subscribed.set()
 
 
-def _stack(port: int | None, rate_hz: float, watch: dict):
+def _stack(port: int | None, rate_hz: float, watch: dict, keep_topic: str | None = None):
     """run_live's ``extra``: with a port, the bridge on it (and the watching client, and its CPU time sampled);
     in every case the time the plant starts."""
     from clients.live import wait_until
@@ -85,7 +92,7 @@ def _stack(port: int | None, rate_hz: float, watch: dict):
         p = procs.start("foxglove", ["foxglove", "--connect", ep, "--components", "source", "--port", str(port),
                                      "--rate-hz", str(rate_hz)], env=env)
         stop = threading.Event()
-        w = _Watcher(port, stop)
+        w = _Watcher(port, stop, keep_topic)
         w.start()
         ok = wait_until(w.subscribed.is_set, 30.0)
         watch.update(watcher=w, stop=stop, subscribed=ok)
