@@ -85,48 +85,35 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     if args.log is not None:
-        return _play(args, stop)
+        from clients.foxglove_playback import PlaybackError, Player
+
+        player = Player(args.log, port=args.port, host=args.host, backlog=args.backlog)
+        return _serve(player, args, stop, (PlaybackError,), lambda: (
+            f"playing {len(args.log)} log(s), {len(player.channels)} channels, "
+            f"{(player.end_ns - player.start_ns) / 1e9:.3f} s"))
     bridge = Bridge(zenoh_from_args(args), components, prefix=args.prefix, port=args.port, rate_hz=args.rate_hz,
                     host=args.host)
-    try:
-        bridge.start()
-    except RuntimeError as e:  # the SDK's FoxgloveError, e.g. the port is taken
-        print(f"energyctl foxglove: cannot serve on {args.host}:{args.port}: {e}", file=sys.stderr)
-        return 2
-    try:
-        print(f"energyctl foxglove: serving {', '.join(bridge.ids)} on ws://{args.host}:{bridge.port} "
-              f"(in the Foxglove app: open connection, Foxglove WebSocket; or {bridge.app_url()})",
-              file=sys.stderr, flush=True)
-        while not stop.wait(0.5):
-            pass
-    finally:
-        status = bridge.status()
-        bridge.close()
-    print(json.dumps(status))
-    return 0
+    return _serve(bridge, args, stop, (), lambda: f"serving {', '.join(bridge.ids)}")
 
 
-def _play(args: argparse.Namespace, stop) -> int:
-    from clients.foxglove_playback import PlaybackError, Player
-
-    player = Player(args.log, port=args.port, host=args.host, backlog=args.backlog)
+def _serve(server, args: argparse.Namespace, stop, refused: tuple, what) -> int:
+    """Start the bridge or the player, serve until SIGINT/SIGTERM, print its status JSON. refused: the errors
+    that mean its input was wrong (exit 2, as a port that is taken does)."""
     try:
-        player.start()
-    except PlaybackError as e:
+        server.start()
+    except refused as e:
         print(f"energyctl foxglove: --log: {e}", file=sys.stderr)
         return 2
     except RuntimeError as e:  # the SDK's FoxgloveError, e.g. the port is taken
         print(f"energyctl foxglove: cannot serve on {args.host}:{args.port}: {e}", file=sys.stderr)
         return 2
     try:
-        print(f"energyctl foxglove: playing {len(args.log)} log(s), {len(player.channels)} channels, "
-              f"{(player.end_ns - player.start_ns) / 1e9:.3f} s, on ws://{args.host}:{player.port} "
-              f"(in the Foxglove app: open connection, Foxglove WebSocket; or {player.app_url()})",
-              file=sys.stderr, flush=True)
+        print(f"energyctl foxglove: {what()} on ws://{args.host}:{server.port} (in the Foxglove app: open "
+              f"connection, Foxglove WebSocket; or {server.app_url()})", file=sys.stderr, flush=True)
         while not stop.wait(0.5):
             pass
     finally:
-        status = player.status()
-        player.close()
+        status = server.status()
+        server.close()
     print(json.dumps(status))
     return 0
