@@ -235,7 +235,22 @@ def connection_graph(prefix: str, nodes: dict[str, Node], plants: dict[str, str]
             {k: tuple(sorted(v)) for k, v in sorted(srv.items())})
 
 
-class Bridge:
+class Served:
+    """What the bridge and the player share: the Foxglove server they started (``server``), on ``_port`` until then
+    (0: a free one)."""
+
+    server = None
+    _port = 0
+
+    @property
+    def port(self) -> int:
+        return self.server.port if self.server is not None else self._port
+
+    def app_url(self) -> str | None:
+        return self.server.app_url() if self.server is not None else None
+
+
+class Bridge(Served):
     """Zenoh -> Foxglove WebSocket for ``components`` (ids, or (id, plant id) pairs).
 
     ``start()`` opens the Zenoh session, subscribes, reads each component's config and starts the Foxglove server on
@@ -312,13 +327,6 @@ class Bridge:
             self.close()
             raise
         return self
-
-    @property
-    def port(self) -> int:
-        return self.server.port if self.server is not None else self._port
-
-    def app_url(self) -> str | None:
-        return self.server.app_url() if self.server is not None else None
 
     def close(self) -> None:
         self._stop.set()

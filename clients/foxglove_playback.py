@@ -32,6 +32,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from clients.foxglove_bridge import Served
+
 BATCH = 5000  # messages logged at most per pass of the lock (then a control request can get in)
 TIME_EVERY_NS = 50_000_000  # the server time goes out at most this often while playing
 # The SDK sends a request's answer (the PlaybackState its callback returns) after the callback, from its own task
@@ -133,7 +135,7 @@ def open_source(path: str | Path) -> Source:
         raise
 
 
-class Player:
+class Player(Served):
     """Serves ``paths`` (MCAP logs) to Foxglove with playback controls on ``host:port`` (port 0: a free one, see
     ``port``). ``start()`` reads the logs' summaries, advertises their channels and starts the server, paused at
     the start of the data; ``close()`` stops it. ``control()`` is what a client's playback request does.
@@ -195,13 +197,6 @@ class Player:
             self.close()
             raise
         return self
-
-    @property
-    def port(self) -> int:
-        return self.server.port if self.server is not None else self._port
-
-    def app_url(self) -> str | None:
-        return self.server.app_url() if self.server is not None else None
 
     def close(self) -> None:
         with self._cond:

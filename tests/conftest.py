@@ -76,3 +76,25 @@ def daemon_by_hand():
         yield d
     finally:
         d.close()
+
+
+class PumpingClient:
+    """A blocking WebSocket test client (the Foxglove tests'): ``pump`` reads messages into ``_take`` until a
+    condition holds; subclasses set ``ws`` and ``_take``, and ``PUMP_TIMEOUT_S``."""
+
+    PUMP_TIMEOUT_S = 5.0
+
+    def pump(self, pred, timeout_s: float | None = None) -> bool:
+        """Reads messages until pred() holds or timeout_s (default PUMP_TIMEOUT_S) passes."""
+        import time
+
+        deadline = time.monotonic() + (self.PUMP_TIMEOUT_S if timeout_s is None else timeout_s)
+        while not pred():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            try:
+                self._take(self.ws.recv(timeout=left))
+            except TimeoutError:
+                return pred()
+        return True

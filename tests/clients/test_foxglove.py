@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("foxglove.websocket")  # not the foxglove/ layout directory of this tree
 ws_client = pytest.importorskip("websockets.sync.client")
 
-from conftest import SCENARIOS  # noqa: E402
+from conftest import SCENARIOS, PumpingClient  # noqa: E402
 
 from clients.foxglove_bridge import Bridge, Decimator, Node, connection_graph, parse_components, toml_text  # noqa: E402
 from clients.live import configs_from_scenario, wait_until  # noqa: E402
@@ -36,7 +36,7 @@ def expected_meas(seq: int) -> dict:
             "i_load": 0.5}
 
 
-class FoxgloveClient:
+class FoxgloveClient(PumpingClient):
     """The few parts of the Foxglove WebSocket protocol a test needs, on a blocking websockets connection."""
 
     def __init__(self, port: int):
@@ -51,19 +51,6 @@ class FoxgloveClient:
         # the connection graph as the updates so far make it: name -> ids
         self.graph = {"published": {}, "subscribed": {}, "services": {}}
         self.graph_updates = 0
-
-    def pump(self, pred, timeout_s: float = 5.0) -> bool:
-        """Reads messages until pred() holds or timeout_s passes."""
-        deadline = time.monotonic() + timeout_s
-        while not pred():
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return False
-            try:
-                self._take(self.ws.recv(timeout=left))
-            except TimeoutError:
-                return pred()
-        return True
 
     def _take(self, m) -> None:
         if isinstance(m, str):

@@ -17,7 +17,7 @@ import pytest
 pytest.importorskip("foxglove.websocket")  # not the foxglove/ layout directory of this tree
 ws_client = pytest.importorskip("websockets.sync.client")
 
-from conftest import SCENARIOS  # noqa: E402
+from conftest import SCENARIOS, PumpingClient  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 
 from clients.cli import main  # noqa: E402
@@ -42,9 +42,11 @@ def log10k(tmp_path_factory):
     return out, msgs
 
 
-class PlaybackClient:
+class PlaybackClient(PumpingClient):
     """The parts of the Foxglove protocol a playback test needs: channels, subscriptions, message data with log
     times, playback requests and states, server time."""
+
+    PUMP_TIMEOUT_S = 10.0
 
     def __init__(self, port: int):
         self._stack = ExitStack()
@@ -58,18 +60,6 @@ class PlaybackClient:
         self.data: list[tuple[str, int, bytes, float]] = []  # (topic, log time, payload, arrival monotonic s)
         self.states: list[dict] = []
         self.times: list[int] = []
-
-    def pump(self, pred, timeout_s: float = 10.0) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while not pred():
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return False
-            try:
-                self._take(self.ws.recv(timeout=left))
-            except TimeoutError:
-                return pred()
-        return True
 
     def _take(self, m) -> None:
         if isinstance(m, str):
