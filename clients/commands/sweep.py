@@ -51,7 +51,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     w.add_argument("--jobs", type=int, default=None, help="processes (default: all cores)")
     w.add_argument("--rows", action="store_true", help="also print every run")
     w.add_argument("--csv", metavar="FILE", help="write every run to a CSV file")
-    w.add_argument("--json", action="store_true", help="print every run as JSON (the grid, then one object per run) instead of the tables")
+    w.add_argument("--json", action="store_true",
+                   help="print every run as JSON (the grid, then one object per run) instead of the tables")
     w.add_argument("--quiet", action="store_true", help="no progress line on stderr")
     w.set_defaults(func=run)
     return w
