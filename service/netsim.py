@@ -340,15 +340,7 @@ def _apply_event(ev, t: float, plant: NetworkPlant, net: NetworkScenario, ctls, 
 def _back_in_band(t: np.ndarray, v: np.ndarray, t0: float, t1: float, target: float, band: float) -> float | None:
     """Seconds from t0 until v stays within +-band x target for the rest of [t0, t1) (None: not by t1)."""
     sel = (t >= t0) & (t < t1)
-    ts, vs = t[sel], v[sel]
-    if len(ts) == 0:
-        return None
-    outside = np.nonzero(np.abs(vs - target) > band * abs(target))[0]
-    if len(outside) == 0:
-        return 0.0
-    if outside[-1] == len(ts) - 1:
-        return None
-    return float(ts[outside[-1] + 1] - t0)
+    return _settle_time(t[sel], np.abs(v[sel] - target), band * abs(target), t0)
 
 
 def _smooth(x: np.ndarray, n: int) -> np.ndarray:

@@ -20,9 +20,11 @@ def is_network_file(path: str) -> bool:
     one-source loader then says why)."""
     import tomllib
 
+    from schemas.network import is_network
+
     try:
         with open(path, "rb") as f:
-            return tomllib.load(f).get("kind") == "network"
+            return is_network(tomllib.load(f))
     except (OSError, tomllib.TOMLDecodeError):
         return False
 
