@@ -29,19 +29,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.network import LinkConfig, NetworkScenario
-from service.core import core_metadata, effective_gain, make_core
-from service.core.feasibility import FeasibilityMonitor, incoming_range, load_box, tau_prime
+from schemas.network import NetworkScenario
+from service.core import core_metadata, make_core
+from service.core.feasibility import FeasibilityMonitor
 from service.core.interaction import outgoing_power_at
 from service.core.source import ACTIVE, FALLBACK, IDLE, MODES, SourceController
-from service.forecast import forecast_outgoing
-from service.plant.network import NetworkPlant
-from service.plant.rlc import CommandSchedule, Sensor
-from service.sim import BAND_SETTLE, substeps
+from service.layer import InterconnectionLayer, link_of
+from service.netrig import NetworkRigModel
+from service.sim import BAND_SETTLE
 
 STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal
-RATE_TAU_S = 1e-3  # the filter on P^{r,in}'s rate, which a late message is carried forward with (s)
-FORECAST_MARGIN = 0.05  # the layer's load box is widened by this fraction for the feasibility checks
 # per source and tick: the true state (i, v, u, i_out), the power its lines draw as measured (P), the P^{r,in} it
 # followed, the rate its plant applied (du_dt), its mode and v_ref; and what its controller saw and answered (the
 # sample meas_*, whether the core stepped, the answer cmd_du / cmd_du_next before the loop delay), which a log
@@ -80,30 +77,19 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     """The network's closed loop offline (see the module docstring). impl: the cores' and the plant's
     implementation (service.core.make_core)."""
     tm, lay = net.timing, net.layer
-    T = 1.0 / tm.control_rate_hz
-    n_sub = substeps(T, tm.plant_step_s)
-    N = int(round(tm.duration_s / T))
-    d = tm.delay_samples
-    plant = NetworkPlant(net, impl)
+    rig = NetworkRigModel(net, impl)  # the plant side, as the network rig runs it
+    plant, T, N, d = rig.plant, rig.T, rig.N, rig.d
+    layer = InterconnectionLayer(net, plant)  # the layer, as the coordinator runs it
     names = list(net.sources)
     ns = len(names)
     cfgs = list(net.sources.values())
-    ctls, sensors, delays, scheds, feas = [], [], [], [], []
-    for j, src in enumerate(cfgs):
-        model = src.model_params()
-        core = make_core(src.controller, model, T, d, impl)
+    ctls, feas = [], []
+    for src in cfgs:
+        core = make_core(src.controller, src.model_params(), T, d, impl)
         ctls.append(SourceController(core, T, idle_power_W=lay.idle_power_W))
-        sensors.append(Sensor(net.sensor, net.seed * 1000 + j))
-        delays.append(deque([(0.0, 0.0)] * d))
-        scheds.append(CommandSchedule(0))
         feas.append(FeasibilityMonitor(lay.window_s))
-    taus = source_taus(net)
-    shares = [s.share for s in cfgs]
-    if net.start == "steady":
-        plant.start_steady(shares, net.nominal_v_V)
-    v_ref0 = [s.controller.v_ref_V for s in cfgs]
-    win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
     config_events: dict[str, list] = {name: [] for name in names}  # the layer's v_ref moves: (t, seq, v_ref V)
+    ranges: dict[str, list] = {name: [] for name in names}  # per source: (window, Z^{r,in}) as set
     # links: per receiving source, (delay in samples, loss, silent from)
     links = []
     for name in names:
@@ -112,58 +98,44 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     link_rng = np.random.default_rng([net.seed, 0x11CC])
     inbox: list[deque] = [deque() for _ in range(ns)]  # (arrival sample, t sent, P_in)
     got = [(-math.inf, 0.0, 0.0)] * ns  # (t sent, P_in W, its rate W/s) of the newest P^{r,in} each source received
-    want_prev, want_rate = [0.0] * ns, [0.0] * ns
-    rate_alpha = T / (T + RATE_TAU_S)
-    pending_events = sorted(net.events, key=lambda e: e.t_s)
     events: list[Event] = []
-    bus_idx = [plant.node_index[b] for b in net.buses]
-    win_sum, win_n = 0.0, 0
-    per_window = max(1, int(round(lay.window_s / T)))  # ticks per layer window: windows by integer arithmetic
-    bus_rng = np.random.default_rng([net.seed, 0xB05])  # the layer's bus measurements: their own noise stream
-    loss_frac = 0.0  # line losses as a fraction of the load, measured over the last window (Z^{r,in}'s allowance)
-    win_delivered = win_load = 0.0
-    ranges: dict[str, list] = {name: [] for name in names}  # per source: (window, Z^{r,in}) as set
-    if lay.mode != "none":
-        _set_feasibility_ranges(plant, net, feas, taus, 0, shares, names, ranges, 0.0)
+    per_window = layer.per_window
 
+    def set_ranges(window: int) -> None:
+        for j, z in enumerate(layer.ranges(window, rig.connected())):
+            if z is not None:
+                feas[j].set_range(window, z)
+                ranges[names[j]].append((window, z))
+
+    if layer.active:
+        set_ranges(0)
     t_arr = np.zeros(N)
     sig = {name: {k: np.zeros(N) for k in SOURCE_SIGNALS} for name in names}
     bus_v = {b: np.zeros(N) for b in net.buses}
     line_i = {ln: np.zeros(N) for ln in net.lines}
-    v_nom = net.nominal_v_V
     diverged_at = None
     P = [0.0] * ns
-    r = [0.0] * ns
     n = 0
     for k in range(N):
-        t = plant.t = k * T  # by index, not by summing T (an event at k T stays on tick k in a long run)
-        topology = False
-        while pending_events and int(round(pending_events[0].t_s / T)) <= k:
-            events.append(_apply_event(pending_events.pop(0), t, plant, net, ctls, shares, taus, T, d, impl,
-                                       k // per_window, loss_frac))
-            topology = True
-        if topology and lay.mode != "none":  # the current window's ranges, for the sources connected now
-            _set_feasibility_ranges(plant, net, feas, taus, k // per_window, shares, names, ranges, loss_frac)
-        connected = [plant.connected(name) for name in names]
-        samples = []
+        due = rig.begin(k)
+        t = plant.t
+        for ev in due:
+            if ev.kind == "connect":  # the layer checks the source's forecast against its share of the window
+                s = names.index(ev.target)
+                f = layer.connect_check(s, ctls[s].core.cfg, k // per_window, rig.connected(), d, impl)
+                if f.feasible:
+                    rig.breaker(ev.target, True)
+                events.append(Event(t, "connect", ev.target, f.feasible, "" if f.feasible else f.reason))
+            else:
+                events.append(Event(t, ev.kind, ev.target))
+        if due and layer.active:  # the current window's ranges, for the sources connected now
+            set_ranges(k // per_window)
+        connected = rig.connected()
+        samples = rig.sample(k)
         for j in range(ns):
-            i_out = plant.terminal_current(j)
-            s = sensors[j].measure(k, t, plant.i_s[j], plant.v_n[j], plant.u_s[j], i_out)
-            samples.append(s)
+            s = samples[j]
             P[j] = s.v * s.i_load if connected[j] else 0.0  # the power its lines draw, as measured
-        # the layer: what each source is to deliver
-        if lay.mode == "live-sum":
-            carrying = [j for j in range(ns) if connected[j] and abs(P[j]) >= lay.idle_power_W]
-            total = sum(P[j] for j in carrying)
-            weight = sum(shares[j] for j in carrying) or 1.0
-            want = [-(shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
-        else:
-            want = [-P[j] for j in range(ns)]
-        # its rate (W/s), filtered: a message carries both, and a late one is carried forward by its age
-        for j in range(ns):
-            raw = (want[j] - want_prev[j]) / T if k else 0.0
-            want_rate[j] += rate_alpha * (raw - want_rate[j])
-            want_prev[j] = want[j]
+        want, want_rate = layer.allocate(k, P, connected)
         if k == 0 and net.start == "steady":  # a network already running: its messages from before t = 0 arrived
             got = [(t, want[j], 0.0) for j in range(ns)]
         # the links, then each controller
@@ -184,58 +156,31 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
             row["meas_i"][k], row["meas_v"][k], row["meas_u"][k], row["meas_i_load"][k] = s.i, s.v, s.u, s.i_load
             row["stepped"][k], row["cmd_du"][k], row["cmd_du_next"][k] = ctls[j].mode != IDLE, du, du_next
             row["P_in"][k] = ctls[j].P_in_used
-            if d:
-                delays[j].append((du, du_next))
-                du, du_next = delays[j].popleft()
-            scheds[j].arrive(k, du, du_next)
-            r[j] = scheds[j].take(k)[0]
+            r = rig.command(j, k, du, du_next)
             est = ctls[j].core.out.est
             if ctls[j].mode == ACTIVE and est is not None and t >= 5.0 * cfgs[j].controller.deriv_tau_s:
                 feas[j].update(t, est.P_r_out_port, est.Qdot_r_out_port)
             row["i"][k], row["v"][k], row["u"][k] = plant.i_s[j], plant.v_n[j], plant.u_s[j]
             row["i_out"][k], row["P"][k] = plant.terminal_current(j), P[j]
-            row["du_dt"][k], row["mode"][k], row["v_ref"][k] = r[j], ctls[j].mode, ctls[j].v_ref_V
+            row["du_dt"][k], row["mode"][k], row["v_ref"][k] = r, ctls[j].mode, ctls[j].v_ref_V
         t_arr[k] = t
-        for b, bi in zip(net.buses, bus_idx, strict=True):
+        for b, bi in zip(net.buses, rig.bus_idx, strict=True):
             bus_v[b][k] = plant.v_n[bi]
         for j, ln in enumerate(net.lines):
             line_i[ln][k] = plant.i_l[j]
         n = k + 1
-        # the layer's window: move v_ref to restore the buses, check the next window's feasibility ranges
-        if bus_idx:  # the buses as the layer measures them (the sensors' voltage noise)
-            noise = net.sensor.noise_v_V
-            win_sum += sum(plant.v_n[bi] + (noise * bus_rng.standard_normal() if noise else 0.0)
-                           for bi in bus_idx) / len(bus_idx)
-            win_n += 1
-            for j in range(ns):
-                win_term[j] += samples[j].v
-        win_delivered += sum(P)
-        win_load += sum(plant.load_power(q, t) for q in range(len(plant.load_list)))
-        if (k + 1) % per_window == 0:
-            win_k = (k + 1) // per_window
-            if win_load > 0.0:
-                loss_frac = max(0.0, win_delivered / win_load - 1.0)
-            win_delivered = win_load = 0.0
-            if lay.mode == "live-sum" and lay.v_ref_gain > 0 and win_n:
-                correction = lay.v_ref_gain * (v_nom - win_sum / win_n)
-                for j in range(ns):
-                    if t - got[j][0] > STALE_S:  # the layer's messages do not reach it either: v_ref stays
-                        continue
-                    if lay.v_ref_mode == "per-source" and connected[j] and ctls[j].mode == ACTIVE:
-                        # where it sits (sharing exactly needs v_ref = v at its terminal), moved with the buses
-                        target = win_term[j] / win_n + correction
-                    else:
-                        target = ctls[j].v_ref_V + correction
-                    lo, hi = v_ref0[j] - lay.v_ref_max_offset_V, v_ref0[j] + lay.v_ref_max_offset_V
-                    new = ctls[j].set_v_ref(min(max(target, lo), hi))
-                    if new is not None:  # applied before the next tick: a log's v_ref event
-                        config_events[names[j]].append((t, k + 1, new.v_ref_V))
-            win_sum, win_n = 0.0, 0
-            win_term = [0.0] * ns
-            if lay.mode != "none":
-                _set_feasibility_ranges(plant, net, feas, taus, win_k, shares, names, ranges, loss_frac)
-        plant.advance(r, T, n_sub)
-        if not plant.finite() or any(not (0.5 * v_nom < v < 2.0 * v_nom) for v in plant.v_n):
+        # the layer's window: move v_ref to restore the buses, set the next window's feasibility ranges
+        layer.accumulate(rig.bus_measurements(), [s.v for s in samples], P, rig.load_powers())
+        fresh_now = [t - got[j][0] <= STALE_S for j in range(ns)]  # the layer's messages reach it: v_ref moves
+        win_k, moves = layer.window_end(k, connected, fresh_now, [c.mode == ACTIVE for c in ctls])
+        for j, v_ref in moves:
+            new = ctls[j].set_v_ref(v_ref)
+            if new is not None:  # applied before the next tick: a log's v_ref event
+                config_events[names[j]].append((t, k + 1, new.v_ref_V))
+        if win_k is not None and layer.active:
+            set_ranges(win_k)
+        rig.advance()
+        if rig.diverged():
             diverged_at = plant.t
             if stop_on_divergence:
                 break
@@ -251,90 +196,6 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     res.events.sort(key=lambda e: e.t)
     res.metrics = network_metrics(res, diverged_at, ctls)
     return res
-
-
-def link_of(net: NetworkScenario, source: str) -> LinkConfig:
-    """The link to a source: the '*' entry, with what the source's own entry sets on top of it."""
-    base = net.links.get("*") or LinkConfig()
-    own = net.links.get(source)
-    return base if own is None else base.model_copy(update={k: getattr(own, k) for k in own.model_fields_set})
-
-
-def window_box(plant: NetworkPlant, net: NetworkScenario, k: int, loss_frac: float = 0.0
-               ) -> tuple[float, float, float, float]:
-    """What the sources deliver over window k (W, W/s): the loads' box, resistive loads at nominal from their
-    switching-in time, times 1 + loss_frac (the lines' losses as the layer last measured them), widened by
-    FORECAST_MARGIN."""
-    w = net.layer.window_s
-    t0, t1 = k * w, min((k + 1) * w, net.timing.duration_s)
-    lo = hi = dlo = dhi = 0.0
-    for j, ld in enumerate(plant.load_list):
-        if ld.type == "resistive":
-            p = net.load_scale * net.nominal_v_V ** 2 / ld.R_ohm
-            on_lo = 0.0 if ld.active_from_s > t0 else p  # switched in during the window: either
-            on_hi = p if ld.active_from_s < t1 else 0.0
-            lo, hi = lo + on_lo, hi + on_hi
-        else:
-            a, b, c, e = plant.profiles[j].range_over(t0, max(t1, t0 + 1e-9))
-            lo, hi, dlo, dhi = lo + a, hi + b, dlo + c, dhi + e
-    g = 1.0 + loss_frac
-    return load_box(g * lo, g * hi, g * dlo, g * dhi, FORECAST_MARGIN)
-
-
-def incoming_ranges(plant: NetworkPlant, net: NetworkScenario, taus: list[float], k: int, shares: list[float],
-                    loss_frac: float = 0.0) -> list[tuple[float, float, float, float]]:
-    """Z^{r,in}[k] of every source (P lo, P hi W, Qdot lo, Qdot hi W/s): its share of what the sources deliver over
-    window k (window_box), through the paper's incoming range with its tau' (taus)."""
-    box = window_box(plant, net, k, loss_frac)
-    total = sum(shares) or 1.0
-    return [incoming_range(*(shares[j] / total * x for x in box), taus[j]) for j in range(len(shares))]
-
-
-def source_taus(net: NetworkScenario) -> list[float]:
-    """tau' of each source's controller on its own model (s): what its feasibility range is built with."""
-    out = []
-    for s in net.sources.values():
-        model = s.model_params()
-        out.append(tau_prime(model.L_H, model.R_ohm, effective_gain(s.controller, model)))
-    return out
-
-
-def _set_feasibility_ranges(plant, net, feas, taus, k, shares, names, ranges, loss_frac) -> None:
-    """Window k's Z^{r,in} for every source, from the shares of the sources connected now (a disconnected one gets
-    none, and the others' shares grow); set again after a breaker or connect event; kept in ``ranges`` for the
-    log."""
-    live = [sh if plant.connected(n) else 0.0 for sh, n in zip(shares, names, strict=True)]
-    for f, z, n, sh in zip(feas, incoming_ranges(plant, net, taus, k, live, loss_frac), names, live, strict=True):
-        if sh > 0.0:
-            f.set_range(k, z)
-            ranges[n].append((k, z))
-
-
-def _apply_event(ev, t: float, plant: NetworkPlant, net: NetworkScenario, ctls, shares, taus, T, d, impl,
-                 window: int, loss_frac: float) -> Event:
-    lines = [plant.line_names.index(ev.target)] if ev.target in net.lines else plant.lines_at(ev.target)
-    if ev.kind == "trip":
-        for j in lines:
-            plant.set_breaker(j, False)
-        return Event(t, "trip", ev.target)
-    if ev.kind == "close":
-        for j in lines:
-            plant.set_breaker(j, True)
-        return Event(t, "close", ev.target)
-    # connect: the layer checks the source's forecast against its share of the current window
-    s = list(net.sources).index(ev.target)
-    src = net.sources[ev.target]
-    connected = [plant.connected(n) for n in net.sources]
-    weight = sum(shares[j] for j in range(len(shares)) if connected[j] or j == s)
-    box = window_box(plant, net, window, loss_frac)
-    a = shares[s] / weight
-    f = forecast_outgoing(ctls[s].core.cfg, src.model_params(), T, d, tuple(a * x for x in box), taus[s],
-                          max_ramp_s=net.layer.window_s, impl=impl)
-    if not f.feasible:
-        return Event(t, "connect", ev.target, False, f.reason)
-    for j in lines:
-        plant.set_breaker(j, True)
-    return Event(t, "connect", ev.target, True, "")
 
 
 def _back_in_band(t: np.ndarray, v: np.ndarray, t0: float, t1: float, target: float, band: float) -> float | None:

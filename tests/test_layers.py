@@ -29,13 +29,18 @@ SERVICE_LAYERS = {
     "service.plant": ("service.core.types", "service.plant", "service._kernel"),
     "service.forecast": ("service.core", "service.plant"),
     "service.sim": ("service.core", "service.plant", "service.forecast"),
-    "service.netsim": ("service.core", "service.plant", "service.forecast", "service.sim"),
+    "service.layer": ("service.core", "service.plant", "service.forecast"),
+    "service.netrig": ("service.core", "service.plant", "service.sim"),
+    "service.netsim": ("service.core", "service.plant", "service.forecast", "service.sim", "service.layer",
+                       "service.netrig"),
+    "service.coordinator": ("service",),
     "service.priority": (),
     "service.logio": ("service.logio", "service.core", "service.priority", "service"),
     "service.replay": ("service.core", "service.logio"),
     "service.daemon": ("service",),
 }
-PURE = ("service.core", "service.plant", "service.forecast", "service.sim", "service.netsim")
+PURE = ("service.core", "service.plant", "service.forecast", "service.sim", "service.netsim", "service.layer",
+        "service.netrig")
 IMPURE_MODULES = ("time", "datetime", "threading", "_thread", "concurrent", "asyncio", "socket", "ssl", "selectors",
                   "subprocess", "multiprocessing", "signal", "os", "ctypes", "zenoh", "mcap", "random", "secrets")
 

@@ -1,0 +1,177 @@
+"""The interconnection layer of a DC network: what each source is to deliver, its per-window v_ref correction, its
+feasibility range, and the plug-in check. Pure: no clocks, no I/O.
+
+The offline network (``service.netsim``) and the live coordinator (``service.coordinator``) drive this one class
+with the same inputs, so a lockstep run over Zenoh reproduces the offline run to the bit. Each control period the
+caller hands it the measured power each source's lines draw (P_s = v_s i_out_s, W) and which sources are
+connected; it answers with P^{r,in}_s (W, negative when the source delivers) and its filtered rate:
+
+* ``layer.mode = "none"``: P^{r,in}_s = -P_s, the source's own lines (each regulates its own terminal);
+* ``layer.mode = "live-sum"``: P^{r,in}_s = -alpha_s sum_k P_k, alpha_s = share_s / (sum of the shares of the
+  connected sources that carry more than ``idle_power_W``): the load shared in the configured proportions,
+  rescaled at once when a source trips.
+
+Once per window (``window_s``, a whole number of periods) every source's v_ref moves by ``v_ref_gain`` x (nominal -
+the buses' mean measured voltage over the window), within ``v_ref_max_offset_V`` of its configured value; this
+restores the bus voltage while the terminals move to share the load. Z^{r,in}[k] of each connected source is its
+share of the loads' box over window k (``window_box``), through the paper's incoming range.
+"""
+
+from __future__ import annotations
+
+from schemas.network import LinkConfig, NetworkScenario
+from schemas.scenario import ControllerConfig
+from service.core import effective_gain
+from service.core.feasibility import incoming_range, load_box, tau_prime
+from service.forecast import OutgoingForecast, forecast_outgoing
+
+RATE_TAU_S = 1e-3  # the filter on P^{r,in}'s rate, which a late message is carried forward with (s)
+FORECAST_MARGIN = 0.05  # the layer's load box is widened by this fraction for the feasibility checks
+
+
+class InterconnectionLayer:
+    """The layer's state over a run (see the module docstring). ``loads``: the network plant, read only for its
+    loads' profiles (``window_box``)."""
+
+    def __init__(self, net: NetworkScenario, loads):
+        self.net, self.cfg, self.loads = net, net.layer, loads
+        self.names = list(net.sources)
+        ns = self.ns = len(self.names)
+        self.shares = [s.share for s in net.sources.values()]
+        self.T = 1.0 / net.timing.control_rate_hz
+        self.per_window = max(1, int(round(self.cfg.window_s / self.T)))  # ticks per window: integer arithmetic
+        self.v_ref0 = [s.controller.v_ref_V for s in net.sources.values()]
+        self.v_ref = list(self.v_ref0)  # what each source's v_ref was last moved to (V)
+        self.taus = source_taus(net)
+        self.want_prev, self.want_rate = [0.0] * ns, [0.0] * ns
+        self.rate_alpha = self.T / (self.T + RATE_TAU_S)
+        self.win_sum, self.win_n = 0.0, 0  # the buses' mean measured voltage, summed over the window
+        self.win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
+        self.win_delivered = self.win_load = 0.0
+        self.loss_frac = 0.0  # line losses as a fraction of the load over the last window (Z^{r,in}'s allowance)
+
+    @property
+    def active(self) -> bool:
+        return self.cfg.mode != "none"
+
+    def allocate(self, k: int, P: list[float], connected: list[bool]) -> tuple[list[float], list[float]]:
+        """(P^{r,in} per source W, its filtered rate W/s) for tick k, from the power each source's lines draw (P, W;
+        0 for a disconnected source) and which are connected."""
+        lay, ns = self.cfg, self.ns
+        if lay.mode == "live-sum":
+            carrying = [j for j in range(ns) if connected[j] and abs(P[j]) >= lay.idle_power_W]
+            total = sum(P[j] for j in carrying)
+            weight = sum(self.shares[j] for j in carrying) or 1.0
+            want = [-(self.shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
+        else:
+            want = [-P[j] for j in range(ns)]
+        for j in range(ns):  # its rate, filtered: a message carries both, and a late one is carried forward by its age
+            raw = (want[j] - self.want_prev[j]) / self.T if k else 0.0
+            self.want_rate[j] += self.rate_alpha * (raw - self.want_rate[j])
+            self.want_prev[j] = want[j]
+        return want, self.want_rate
+
+    def accumulate(self, bus_meas: list[float], term_v: list[float], P: list[float], load_W: list[float]) -> None:
+        """One tick's window sums: the buses as measured (V), each terminal as measured (V), the powers the sources'
+        lines draw (W) and the loads' true powers (W; the line losses are measured against them)."""
+        if bus_meas:
+            self.win_sum += sum(bus_meas) / len(bus_meas)
+            self.win_n += 1
+            for j in range(self.ns):
+                self.win_term[j] += term_v[j]
+        self.win_delivered += sum(P)
+        self.win_load += sum(load_W)
+
+    def window_end(self, k: int, connected: list[bool], fresh: list[bool], active: list[bool]
+                   ) -> tuple[int | None, list[tuple[int, float]]]:
+        """After tick k: (the window that starts next, or None if k does not end one; the v_ref moves (source
+        index, new v_ref V) to apply before tick k + 1). fresh: the source gets the layer's messages (a source that
+        does not keeps its v_ref); active: it is regulating (per-source mode moves only those to their terminal)."""
+        if (k + 1) % self.per_window:
+            return None, []
+        lay = self.cfg
+        if self.win_load > 0.0:
+            self.loss_frac = max(0.0, self.win_delivered / self.win_load - 1.0)
+        self.win_delivered = self.win_load = 0.0
+        moves = []
+        if lay.mode == "live-sum" and lay.v_ref_gain > 0 and self.win_n:
+            correction = lay.v_ref_gain * (self.net.nominal_v_V - self.win_sum / self.win_n)
+            for j in range(self.ns):
+                if not fresh[j]:
+                    continue
+                if lay.v_ref_mode == "per-source" and connected[j] and active[j]:
+                    # where it sits (sharing exactly needs v_ref = v at its terminal), moved with the buses
+                    target = self.win_term[j] / self.win_n + correction
+                else:
+                    target = self.v_ref[j] + correction
+                lo, hi = self.v_ref0[j] - lay.v_ref_max_offset_V, self.v_ref0[j] + lay.v_ref_max_offset_V
+                new = min(max(target, lo), hi)
+                if new != self.v_ref[j]:
+                    self.v_ref[j] = new
+                    moves.append((j, new))
+        self.win_sum, self.win_n = 0.0, 0
+        self.win_term = [0.0] * self.ns
+        return (k + 1) // self.per_window, moves
+
+    def ranges(self, window: int, connected: list[bool]) -> list[tuple | None]:
+        """Z^{r,in}[window] per source (P lo, P hi W, Qdot lo, Qdot hi W/s) from the shares of the sources connected
+        now (a disconnected one gets None, and the others' shares grow)."""
+        live = [sh if c else 0.0 for sh, c in zip(self.shares, connected, strict=True)]
+        z = incoming_ranges(self.loads, self.net, self.taus, window, live, self.loss_frac)
+        return [zj if sh > 0.0 else None for zj, sh in zip(z, live, strict=True)]
+
+    def connect_check(self, s: int, controller: ControllerConfig, window: int, connected: list[bool],
+                      delay_samples: int, impl: str = "auto") -> OutgoingForecast:
+        """The plug-in check of source s: its forecast Z^{r,out} (service.forecast) for its share of window's load
+        box, with the sources connected now and s, against its Z^{r,in}."""
+        weight = sum(self.shares[j] for j in range(self.ns) if connected[j] or j == s)
+        box = window_box(self.loads, self.net, window, self.loss_frac)
+        a = self.shares[s] / weight
+        src = self.net.sources[self.names[s]]
+        return forecast_outgoing(controller, src.model_params(), self.T, delay_samples, tuple(a * x for x in box),
+                                 self.taus[s], max_ramp_s=self.cfg.window_s, impl=impl)
+
+
+def link_of(net: NetworkScenario, source: str) -> LinkConfig:
+    """The link to a source: the '*' entry, with what the source's own entry sets on top of it."""
+    base = net.links.get("*") or LinkConfig()
+    own = net.links.get(source)
+    return base if own is None else base.model_copy(update={k: getattr(own, k) for k in own.model_fields_set})
+
+
+def window_box(plant, net: NetworkScenario, k: int, loss_frac: float = 0.0) -> tuple[float, float, float, float]:
+    """What the sources deliver over window k (W, W/s): the loads' box, resistive loads at nominal from their
+    switching-in time, times 1 + loss_frac (the lines' losses as the layer last measured them), widened by
+    FORECAST_MARGIN. plant: the network plant (its loads and their profiles)."""
+    w = net.layer.window_s
+    t0, t1 = k * w, min((k + 1) * w, net.timing.duration_s)
+    lo = hi = dlo = dhi = 0.0
+    for j, ld in enumerate(plant.load_list):
+        if ld.type == "resistive":
+            p = net.load_scale * net.nominal_v_V ** 2 / ld.R_ohm
+            on_lo = 0.0 if ld.active_from_s > t0 else p  # switched in during the window: either
+            on_hi = p if ld.active_from_s < t1 else 0.0
+            lo, hi = lo + on_lo, hi + on_hi
+        else:
+            a, b, c, e = plant.profiles[j].range_over(t0, max(t1, t0 + 1e-9))
+            lo, hi, dlo, dhi = lo + a, hi + b, dlo + c, dhi + e
+    g = 1.0 + loss_frac
+    return load_box(g * lo, g * hi, g * dlo, g * dhi, FORECAST_MARGIN)
+
+
+def incoming_ranges(plant, net: NetworkScenario, taus: list[float], k: int, shares: list[float],
+                    loss_frac: float = 0.0) -> list[tuple[float, float, float, float]]:
+    """Z^{r,in}[k] of every source (P lo, P hi W, Qdot lo, Qdot hi W/s): its share of what the sources deliver over
+    window k (window_box), through the paper's incoming range with its tau' (taus)."""
+    box = window_box(plant, net, k, loss_frac)
+    total = sum(shares) or 1.0
+    return [incoming_range(*(shares[j] / total * x for x in box), taus[j]) for j in range(len(shares))]
+
+
+def source_taus(net: NetworkScenario) -> list[float]:
+    """tau' of each source's controller on its own model (s): what its feasibility range is built with."""
+    out = []
+    for s in net.sources.values():
+        model = s.model_params()
+        out.append(tau_prime(model.L_H, model.R_ohm, effective_gain(s.controller, model)))
+    return out

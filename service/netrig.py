@@ -1,0 +1,112 @@
+"""The plant side of a network's closed loop: the network plant, each source's sensor, loop delay and command
+schedule, the scenario's breaker events and the layer's bus measurements. Pure: no clocks, no I/O.
+
+The offline network (``service.netsim``) and the hardware-in-the-loop network rig (``energyctl plant --config
+NETWORK``) drive this one class, so that both sample, delay and apply commands the same way to the bit. Per tick k:
+``begin(k)`` applies the breaker events due (``trip``/``close``; a ``connect`` event is the layer's to answer and is
+handed back), ``sample(k)`` measures every source, ``bus_measurements()`` and ``load_powers()`` give what the layer
+sees, ``command(j, k, ...)`` takes source j's answer through its loop delay and returns the rate its converter
+applies, and ``advance(r)`` integrates one period.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from schemas.network import EventConfig, NetworkScenario
+from service.core.types import Sample
+from service.plant.network import NetworkPlant
+from service.plant.rlc import CommandSchedule, Sensor
+from service.sim import substeps
+
+
+class NetworkRigModel:
+    """See the module docstring. ``plant`` is the NetworkPlant; ``names`` the sources in scenario order."""
+
+    def __init__(self, net: NetworkScenario, impl: str = "auto"):
+        self.net = net
+        tm = net.timing
+        self.T = 1.0 / tm.control_rate_hz
+        self.n_sub = substeps(self.T, tm.plant_step_s)
+        self.N = int(round(tm.duration_s / self.T))
+        self.d = tm.delay_samples
+        self.plant = plant = NetworkPlant(net, impl)
+        self.names = list(net.sources)
+        ns = len(self.names)
+        self.sensors = [Sensor(net.sensor, net.seed * 1000 + j) for j in range(ns)]
+        self.delays: list[deque] = [deque([(0.0, 0.0)] * self.d) for _ in range(ns)]
+        self.scheds = [CommandSchedule(0) for _ in range(ns)]
+        if net.start == "steady":
+            plant.start_steady([s.share for s in net.sources.values()], net.nominal_v_V)
+        self.pending: list[EventConfig] = sorted(net.events, key=lambda e: e.t_s)
+        self.bus_idx = [plant.node_index[b] for b in net.buses]
+        self.bus_rng = np.random.default_rng([net.seed, 0xB05])  # the layer's bus measurements: their own noise
+        self.r = [0.0] * ns
+
+    def begin(self, k: int, kinds=("trip", "close", "connect")) -> list[EventConfig]:
+        """Start tick k (t = k T, by index: an event at k T stays on tick k in a long run): the scenario's events due
+        by k, of the given kinds (others are dropped), in time order; trips and closes are applied here, the rest
+        handed back."""
+        self.plant.t = k * self.T
+        due = []
+        while self.pending and int(round(self.pending[0].t_s / self.T)) <= k:
+            ev = self.pending.pop(0)
+            if ev.kind not in kinds:
+                continue
+            if ev.kind in ("trip", "close"):
+                self.breaker(ev.target, ev.kind == "close")
+            due.append(ev)
+        return due
+
+    def lines_of(self, target: str) -> list[int]:
+        """The lines a breaker event names: a line, or every line at a source."""
+        plant = self.plant
+        return [plant.line_names.index(target)] if target in self.net.lines else plant.lines_at(target)
+
+    def breaker(self, target: str, closed: bool) -> None:
+        for j in self.lines_of(target):
+            self.plant.set_breaker(j, closed)
+
+    def connected(self) -> list[bool]:
+        return [self.plant.connected(name) for name in self.names]
+
+    def sample(self, k: int) -> list[Sample]:
+        """Every source's measurement (i, v, u and i_out, the current leaving its terminal into its lines)."""
+        p, t = self.plant, self.plant.t
+        return [self.sensors[j].measure(k, t, p.i_s[j], p.v_n[j], p.u_s[j], p.terminal_current(j))
+                for j in range(len(self.names))]
+
+    def bus_measurements(self) -> list[float]:
+        """The buses' voltages as the layer measures them (V; the sensors' voltage noise, its own stream)."""
+        noise, v_n, rng = self.net.sensor.noise_v_V, self.plant.v_n, self.bus_rng
+        return [v_n[bi] + (noise * rng.standard_normal() if noise else 0.0) for bi in self.bus_idx]
+
+    def load_powers(self) -> list[float]:
+        """Each load's true power now (W)."""
+        p = self.plant
+        return [p.load_power(q, p.t) for q in range(len(p.load_list))]
+
+    def command(self, j: int, k: int, du: float | None, du_next: float = 0.0) -> float:
+        """Source j's answer to sample k (du/dt, planned du/dt V/s; None: none came) through its loop delay: the
+        rate its converter applies over period k (V/s)."""
+        q = self.delays[j]
+        if self.d:
+            q.append(None if du is None else (du, du_next))
+            got = q.popleft()
+        else:
+            got = None if du is None else (du, du_next)
+        sched = self.scheds[j]
+        if got is not None:
+            sched.arrive(k, *got)
+        self.r[j] = sched.take(k)[0]
+        return self.r[j]
+
+    def advance(self) -> None:
+        self.plant.advance(self.r, self.T, self.n_sub)
+
+    def diverged(self) -> bool:
+        v_nom = self.net.nominal_v_V
+        p = self.plant
+        return not p.finite() or any(not (0.5 * v_nom < v < 2.0 * v_nom) for v in p.v_n)
