@@ -14,7 +14,18 @@ from typing import get_args
 
 from pydantic import BaseModel
 
-from schemas.messages import Command, Estimate, Interaction, LoopRecord, Measurement, Plant, TickInput
+from schemas.messages import (
+    Allocation,
+    Command,
+    Estimate,
+    Interaction,
+    LayerSource,
+    LayerTick,
+    LoopRecord,
+    Measurement,
+    Plant,
+    TickInput,
+)
 
 VERSION = 1
 _TYPE_CODES = {int: "Q", float: "d", bool: "B"}
@@ -113,6 +124,52 @@ TICK_IN = Codec(TickInput, 0x71)
 EST = Codec(Estimate, 0x51)
 LOOP = Codec(LoopRecord, 0x4C)
 PLANT = Codec(Plant, 0x50)  # only recorded (the HIL plant's true state), never sent
+ALLOC = Codec(Allocation, 0xA1)
+LAYER_SRC = Codec(LayerSource, 0x4D)  # only recorded (the coordinator's inputs and answers per source)
+LAYER_TICK = Codec(LayerTick, 0x4E)  # only recorded
+
+
+class GridCodec:
+    """The network rig's per-sample message to the coordinator (schemas.messages.GridSample): a header and arrays
+    whose lengths it states."""
+
+    name = "GridSample"
+    magic = 0x47
+    head = struct.Struct("<BBQdHHH")
+
+    def encode(self, seq: int, t: float, v, i_out, connected, bus_v, load_P) -> bytes:
+        ns, nb, nl = len(v), len(bus_v), len(load_P)
+        vals = [*v, *i_out, *(1.0 if c else 0.0 for c in connected), *bus_v, *load_P]
+        return self.head.pack(self.magic, VERSION, seq, t, ns, nb, nl) + struct.pack(f"<{len(vals)}d", *vals)
+
+    def decode(self, payload: bytes) -> tuple:
+        """(seq, t, v, i_out, connected, bus_v, load_P); raises DecodeError naming the field."""
+        h = self.head.size
+        if len(payload) < h:
+            raise DecodeError(self.name, "<payload>", f"{len(payload)} bytes, shorter than its {h}-byte header")
+        magic, version, seq, t, ns, nb, nl = self.head.unpack_from(payload)
+        if magic != self.magic:
+            raise DecodeError(self.name, "<magic>", f"0x{magic:02x}, expected 0x{self.magic:02x}")
+        if version != VERSION:
+            raise DecodeError(self.name, "<version>", f"{version}, expected {VERSION}")
+        n = 3 * ns + nb + nl
+        if len(payload) != h + 8 * n:
+            raise DecodeError(self.name, "<payload>", f"{len(payload)} bytes, expected {h + 8 * n} for {ns} sources, "
+                                                      f"{nb} buses and {nl} loads")
+        vals = struct.unpack_from(f"<{n}d", payload, h)
+        if not isfinite(t):
+            raise DecodeError(self.name, "t", f"not finite ({t!r})")
+        if not isfinite(sum(vals)):
+            names = ["v"] * ns + ["i_out"] * ns + ["connected"] * ns + ["bus_v"] * nb + ["load_P"] * nl
+            k = next(k for k, x in enumerate(vals) if not isfinite(x))
+            raise DecodeError(self.name, names[k], f"not finite ({vals[k]!r})")
+        v, i_out = list(vals[:ns]), list(vals[ns:2 * ns])
+        connected = [x != 0.0 for x in vals[2 * ns:3 * ns]]
+        return seq, t, v, i_out, connected, list(vals[3 * ns:3 * ns + nb]), list(vals[3 * ns + nb:])
+
+
+GRID = GridCodec()
 
 # the codec of each message model that has a binary form (energyctl.Event has none: JSON text in recordings only)
-BY_MODEL: dict[type[BaseModel], Codec] = {c.model: c for c in (MEAS, CMD, Z, TICK_IN, EST, LOOP, PLANT)}
+BY_MODEL: dict[type[BaseModel], Codec] = {c.model: c for c in (MEAS, CMD, Z, TICK_IN, EST, LOOP, PLANT, ALLOC,
+                                                                    LAYER_SRC, LAYER_TICK)}

@@ -160,6 +160,32 @@ class LoopConfig(Strict):
         default=100_000, description="ticks the status query's loop-time distributions cover (the newest)")
 
 
+class NetworkRole(Strict):
+    """A source daemon's part in a live network (``energyctl run --network``): where its allocation comes from, the
+    line ends at its terminal it shows as neighbours, and when it asks to connect."""
+
+    network: str = Field(description="the network scenario's name")
+    coordinator: str = Field(default="coordinator", description="the coordinator's id: allocations come on "
+                                                                "PREFIX/ID/alloc, connect requests go to "
+                                                                "PREFIX/COORDINATOR/connect")
+    lines: list[str] = Field(default=[], description="the lines at its terminal: neighbours on PREFIX/LINE/z/ID")
+    idle_power_W: Annotated[float, Field(ge=0)] = Field(default=30.0, description="below this |P^{r,in}| (and "
+                                                                                  "whenever disconnected) it holds "
+                                                                                  "its voltage (idle mode), W")
+    stale_s: Annotated[float, Field(gt=0)] = Field(default=0.01, description="an allocation older than this (sample "
+                                                                             "time) is stale: the source falls back "
+                                                                             "to its own terminal power, s")
+    extrapolate_s: Annotated[float, Field(ge=0)] = Field(default=0.002, description="a late allocation is carried "
+                                                                                    "forward along its rate by at "
+                                                                                    "most this, s")
+    connect_at_s: Annotated[float, Field(ge=0)] | None = Field(
+        default=None, description="from this sample time on, while its breaker is open, it asks the coordinator to "
+                                  "connect (the plug-in handshake; again after connect_retry_s when refused or "
+                                  "tripped); none: it never asks")
+    connect_retry_s: Annotated[float, Field(gt=0)] = Field(default=0.5, description="sample time between two "
+                                                                                    "connect requests, s")
+
+
 class ComponentConfig(Named):
     """``energyctl run --config``: the controller daemon for one component."""
 
@@ -170,6 +196,9 @@ class ComponentConfig(Named):
         default=2, description="loop delay the core predicts over unless controller.delay_compensation_samples "
                                "(samples)")
     neighbours: list[str] = Field(default=[], description="ids whose interaction variables form P^{r,in}")
+    network: NetworkRole | None = Field(default=None, description="a source on a live network: its P^{r,in} comes "
+                                                                  "from the coordinator's allocation, not from "
+                                                                  "neighbours (energyctl run --network)")
     core: Literal["auto", "c", "python"] = Field(
         default="auto", description="the control core's implementation: 'c' the compiled twin (the daemon refuses "
                                     "to start without it), 'python' the reference (the same bits, about 25x the CPU "

@@ -117,12 +117,74 @@ class Plant(Msg):
     P_l: float = Field(description="load power, W")
 
 
+class Allocation(Msg):
+    """The interconnection layer's word to one network source for one sample (topic ``.../<source>/alloc``, from the
+    coordinator): what it is to deliver, its voltage reference, its breaker as the rig reported it, and its
+    feasibility range Z^{r,in} for the window."""
+
+    seq: int = Field(ge=0, description="seq of the network sample it answers (a lockstep source waits for it)")
+    t: float = Field(description="time of that sample, s (a source judges its age against its own sample's t)")
+    P_r_in: float = Field(description="P^{r,in} the source is to follow, W (negative: it delivers)")
+    P_r_in_dot: float = Field(description="its filtered rate, W/s (a late message is carried forward along it)")
+    v_ref_V: float = Field(description="the source's voltage reference, as the layer last moved it, V")
+    connected: bool = Field(description="its breaker was closed at that sample")
+    window: int = Field(ge=0, description="the layer's window the range is for")
+    has_range: bool = Field(description="a range is set for the window (false: the source is not connected)")
+    Z_P_min: float = Field(description="Z^{r,in}: lower end of the incoming power range, W")
+    Z_P_max: float = Field(description="upper end of the incoming power range, W")
+    Z_Qdot_min: float = Field(description="lower end of the incoming reactive-power-rate range, W/s")
+    Z_Qdot_max: float = Field(description="upper end of that range, W/s")
+
+
+class GridSample(Msg):
+    """The network rig's sample for the interconnection layer (topic ``.../<rig>/grid``), in scenario order. Its wire
+    form is not fixed-size: magic 0x47, version, seq (u64), t (f64), then u16 counts of sources, buses and loads, then
+    f64 arrays: each source's measured v and i_out and 1.0/0.0 for its breaker, the buses' measured voltages, the
+    loads' true powers (schemas.codec.GRID)."""
+
+    seq: int = Field(ge=0, description="network sample seq")
+    t: float = Field(description="sample time, s")
+    v: list[float] = Field(description="each source's measured terminal voltage, V")
+    i_out: list[float] = Field(description="each source's measured current into its lines, A")
+    connected: list[bool] = Field(description="each source's breaker closed")
+    bus_v: list[float] = Field(description="each bus's measured voltage, V")
+    load_P: list[float] = Field(description="each load's power, W")
+
+
+class LayerSource(Msg):
+    """What the coordinator saw of one source and answered it, per sample (recorded only, ``.../layer/<source>``):
+    enough to replay its allocations."""
+
+    seq: int = Field(ge=0, description="network sample seq")
+    t: float = Field(description="sample time, s")
+    v: float = Field(description="the source's measured terminal voltage, V")
+    i_out: float = Field(description="its measured current into its lines, A")
+    connected: bool = Field(description="its breaker closed")
+    P_r_in: float = Field(description="the P^{r,in} allocated, W")
+    P_r_in_dot: float = Field(description="its filtered rate, W/s")
+    v_ref_V: float = Field(description="the v_ref sent, V")
+
+
+class LayerTick(Msg):
+    """The coordinator's per-sample window inputs (recorded only, ``.../layer/tick``)."""
+
+    seq: int = Field(ge=0, description="network sample seq")
+    t: float = Field(description="sample time, s")
+    bus_v_mean: float = Field(description="the buses' mean measured voltage, V (0 without buses)")
+    load_W: float = Field(description="the loads' total power, W")
+    has_buses: bool = Field(description="the network has buses (the window's voltage mean counts this sample)")
+
+
 MESSAGE_MODELS: dict[str, type[Msg]] = {
     "energyctl.Measurement": Measurement,
     "energyctl.Command": Command,
     "energyctl.Estimate": Estimate,
     "energyctl.Interaction": Interaction,
     "energyctl.TickInput": TickInput,
+    "energyctl.Allocation": Allocation,
+    "energyctl.GridSample": GridSample,
+    "energyctl.LayerSource": LayerSource,
+    "energyctl.LayerTick": LayerTick,
     "energyctl.Event": Event,
     "energyctl.LoopRecord": LoopRecord,
     "energyctl.Plant": Plant,

@@ -25,7 +25,10 @@ from service.sim import substeps
 class NetworkRigModel:
     """See the module docstring. ``plant`` is the NetworkPlant; ``names`` the sources in scenario order."""
 
-    def __init__(self, net: NetworkScenario, impl: str = "auto"):
+    def __init__(self, net: NetworkScenario, impl: str = "auto", realtime: bool = False):
+        """realtime: commands come when they come (``arrive``), and the one answering sample k acts over period
+        k + d (the loop delay is the time the answer had); otherwise ``command`` puts each through a d-sample delay
+        line (lockstep and offline)."""
         self.net = net
         tm = net.timing
         self.T = 1.0 / tm.control_rate_hz
@@ -37,7 +40,7 @@ class NetworkRigModel:
         ns = len(self.names)
         self.sensors = [Sensor(net.sensor, net.seed * 1000 + j) for j in range(ns)]
         self.delays: list[deque] = [deque([(0.0, 0.0)] * self.d) for _ in range(ns)]
-        self.scheds = [CommandSchedule(0) for _ in range(ns)]
+        self.scheds = [CommandSchedule(self.d if realtime else 0) for _ in range(ns)]
         if net.start == "steady":
             plant.start_steady([s.share for s in net.sources.values()], net.nominal_v_V)
         self.pending: list[EventConfig] = sorted(net.events, key=lambda e: e.t_s)
@@ -102,6 +105,25 @@ class NetworkRigModel:
             sched.arrive(k, *got)
         self.r[j] = sched.take(k)[0]
         return self.r[j]
+
+    def arrive(self, j: int, seq: int, du: float, du_next: float) -> None:
+        """Realtime: source j's answer to sample seq came."""
+        self.scheds[j].arrive(seq, du, du_next)
+
+    def take(self, j: int, k: int) -> float:
+        """Realtime: the rate source j's converter applies over period k (V/s): the answer to sample k - d, else
+        its predecessor's plan, else a hold."""
+        self.r[j] = self.scheds[j].take(k)[0]
+        return self.r[j]
+
+    def line_ends(self) -> list[tuple[str, str, float]]:
+        """(line, node, the power the line draws there W) for both ends of every line."""
+        p, names, nodes = self.plant, self.plant.line_names, self.net.nodes()
+        out = []
+        for j, ln in enumerate(self.net.lines.values()):
+            for node in (ln.a, ln.b):
+                out.append((names[j], node, p.line_end_power(j, nodes.index(node))))
+        return out
 
     def advance(self) -> None:
         self.plant.advance(self.r, self.T, self.n_sub)

@@ -249,11 +249,12 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls) -> dict
             "sharing_error_pp": (100.0 * (steady_P[s] / total_P - shares[s] / total_share) if s in carrying
                                  else None),
             "terminal_dev_pct": float(np.max(np.abs(v[tail] - v_nom)) / v_nom * 100) if n else None,
-            "mode_switches": ctls[names.index(s)].switches,
-            "fallback_s": float(np.count_nonzero(row["mode"] == FALLBACK) * T),
-            "first_fallback_t_s": (float(t[np.argmax(row["mode"] == FALLBACK)]) if (row["mode"] == FALLBACK).any()
-                                   else None),
-            "final_mode": MODES[int(row["mode"][-1])] if n else None,
+            # (a live rig's trace has no modes: the daemons know them)
+            "mode_switches": ctls[names.index(s)].switches if ctls else None,
+            "fallback_s": float(np.count_nonzero(row["mode"] == FALLBACK) * T) if "mode" in row else None,
+            "first_fallback_t_s": (float(t[np.argmax(row["mode"] == FALLBACK)])
+                                   if "mode" in row and (row["mode"] == FALLBACK).any() else None),
+            "final_mode": MODES[int(row["mode"][-1])] if n and "mode" in row else None,
             "feasibility_violations": res.violations.get(s, 0),
         }
     # steady state: the 100 ms before each event and before the end, where at least 50 ms passed since the last one
@@ -270,7 +271,8 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls) -> dict
     ends = sorted({e.t for e in res.events})
     # a terminal is judged against its own reference v_ref (which the layer moves): where the source's law
     # takes it; with the layer off that is nominal
-    terminal_dev = {s: np.abs(res.sources[s]["v"] - res.sources[s]["v_ref"]) / res.sources[s]["v_ref"] for s in names}
+    v_refs = {s: res.sources[s].get("v_ref", np.full(n, v_nom)) for s in names}
+    terminal_dev = {s: np.abs(res.sources[s]["v"] - v_refs[s]) / v_refs[s] for s in names}
     for ev in res.events:
         t1 = next((x for x in ends if x > ev.t + 1e-9), float(t[-1]) + T if n else math.inf)
         settled = (t >= t1 - 0.05) & (t < t1)

@@ -6,6 +6,7 @@ from __future__ import annotations
 from clients.commands import (
     bench,
     compare,
+    coordinator,
     demo,
     foxglove,
     load,
@@ -23,5 +24,5 @@ from clients.commands import (
 )
 
 # in the order energyctl --help lists them
-COMMANDS = (sim, compare, sweep, demo, bench, run, plant, load, query, router, secure_profile, replay, log, report,
-            schema, foxglove)
+COMMANDS = (sim, compare, sweep, demo, bench, run, plant, coordinator, load, query, router, secure_profile, replay,
+            log, report, schema, foxglove)

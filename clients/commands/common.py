@@ -69,7 +69,7 @@ def network_summary(m: dict) -> dict:
             "worst_bus_ss_dev_pct": max((b["ss_dev_pct"] for b in m["buses"].values()
                                          if b["ss_dev_pct"] is not None), default=None),
             "worst_bus_back_s": None if None in backs else max(backs, default=0.0),
-            "fallback_s": sum(s["fallback_s"] for s in m["sources"].values())}
+            "fallback_s": sum(s["fallback_s"] or 0.0 for s in m["sources"].values())}
 
 
 def _worker(job: tuple[str, list[str]]) -> dict:

@@ -8,7 +8,7 @@ import sys
 import threading
 from pathlib import Path
 
-from clients.options import add_config_command
+from clients.options import add_config_command, add_core, add_zenoh
 
 DESCRIPTION = """\
 Fixed-rate control loop for one component on Zenoh. With PREFIX the config's prefix (default energyctl) and ID its \
@@ -27,13 +27,53 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description=DESCRIPTION, model="ComponentConfig", file="COMPONENT.toml", example="loop.rate_hz=2000",
         set_examples="--set controller.K_per_s=800 --set loop.rate_hz=2000", what="the component's")
     r.add_argument("--stats-out", metavar="FILE.json", help="write the final status JSON here on exit")
+    for a in r._actions:  # --config or --network
+        if a.dest == "config":
+            a.required = False
+            a.help += "; or --network and --source instead"
+    net = r.add_argument_group(
+        "a source of a live network (instead of --config)",
+        "The daemon of one source of a network scenario: its controller, model error, rate and loop delay from the "
+        "scenario, P^{r,in} from the coordinator's allocation on PREFIX/SOURCE/alloc (falling back to its own "
+        "terminal when that is older than 10 ms of sample time), the lines at its terminal as its neighbours, and "
+        "the plug-in handshake with the coordinator while its breaker is open. --set then overrides the scenario.")
+    net.add_argument("--network", metavar="NETWORK.toml", help="the network scenario (kind = \"network\")")
+    net.add_argument("--source", metavar="NAME", help="which of its sources this daemon controls")
+    net.add_argument("--prefix", default="energyctl", help="key-expression prefix (default: %(default)s)")
+    net.add_argument("--realtime", action="store_true", help="a realtime rig: answer each sample as it comes "
+                                                            "(default: lockstep, waiting for each allocation)")
+    net.add_argument("--log-dir", metavar="DIR", help="record to DIR/SOURCE-<UTC time>.mcap")
+    net.add_argument("--connect-at", type=float, metavar="SECONDS",
+                     help="ask to connect from this sample time on while its breaker is open (default: the time of "
+                          "its connect event in the scenario; none: it never asks); 0: as soon as it runs")
+    net.add_argument("--coordinator", default="coordinator", help="the coordinator's id (default: %(default)s)")
+    add_core(net)
+    add_zenoh(net)
     r.set_defaults(func=run)
     return r
 
 
 def run(args: argparse.Namespace) -> int:
     from schemas.component import ComponentConfig, load_config
+    from schemas.scenario import ScenarioError
 
+    if (args.config is None) == (args.network is None):
+        raise ScenarioError("energyctl run: give --config COMPONENT.toml, or --network NETWORK.toml with --source")
+    if args.network is not None:
+        from clients.options import zenoh_from_args
+        from schemas.netlive import source_component
+        from schemas.network import load_network
+
+        if not args.source:
+            raise ScenarioError("energyctl run --network: --source NAME is required (which source this daemon is)")
+        net = load_network(args.network, args.set)
+        try:
+            cfg = source_component(net, args.source, prefix=args.prefix, zenoh=zenoh_from_args(args),
+                                   lockstep=not args.realtime, log_dir=args.log_dir, coordinator=args.coordinator,
+                                   connect_at_s=args.connect_at, core=args.core)
+        except ValueError as e:
+            raise ScenarioError(f"--source: {e}") from None
+        return run_daemon(cfg, args.stats_out)
     return run_daemon(load_config(ComponentConfig, args.config, args.set), args.stats_out)
 
 
@@ -41,14 +81,17 @@ def run_daemon(cfg, stats_out: str | None = None) -> int:
     """Open the daemon, run its loop thread until SIGINT/SIGTERM (or the loop ends), print its statistics."""
     from clients.live import start_process
     from service.daemon.daemon import Daemon
+    from service.daemon.netsource import NetworkSourceDaemon
 
     stop = start_process(cfg, "run")
-    d = Daemon(cfg)
+    d = NetworkSourceDaemon(cfg) if cfg.network is not None else Daemon(cfg)
     d.open()
     loop = threading.Thread(target=d.run_loop, name="loop", daemon=True)
     loop.start()
     print(f"energyctl run: {cfg.id} active, {cfg.loop.rate_hz:g} Hz {cfg.loop.trigger} trigger "
-          f"({'lockstep' if cfg.loop.lockstep else 'free-running'}), neighbours {cfg.neighbours or 'none'}",
+          f"({'lockstep' if cfg.loop.lockstep else 'free-running'}), "
+          + (f"source of network {cfg.network.network!r}, lines {cfg.network.lines}" if cfg.network is not None
+             else f"neighbours {cfg.neighbours or 'none'}"),
           file=sys.stderr, flush=True)
     warned = False
     while not stop.is_set() and loop.is_alive():

@@ -195,3 +195,20 @@ def latest(session: zenoh.Session, key_expr: str, newest: int = 1) -> zenoh.Subs
     """Latest-value subscriber: a ring of the ``newest`` messages (default one; a full ring drops its oldest),
     polled with try_recv() (oldest first) from the loop thread."""
     return session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(newest))
+
+
+def request(session: zenoh.Session, selector: str, body: dict | None, timeout_s: float) -> tuple[bool, dict]:
+    """One JSON query between services: (ok, the reply's JSON) of the first reply; (False, {"error": ...}) when
+    none came within timeout_s or the reply was not JSON."""
+    payload = json.dumps(body) if body is not None else None
+    try:
+        for r in session.get(selector, payload=payload, timeout=timeout_s):
+            ok = r.ok is not None
+            raw = (r.ok if ok else r.err).payload.to_bytes()
+            try:
+                return ok, json.loads(raw)
+            except ValueError:
+                return False, {"error": raw.decode(errors="replace")}
+    except Exception as e:  # noqa: BLE001 - a closed session, a bad selector: the caller decides
+        return False, {"error": f"{type(e).__name__}: {e}"}
+    return False, {"error": f"no answer from {selector} within {timeout_s:g} s"}

@@ -161,6 +161,7 @@ class Daemon(DaemonQueries):
                   self.t_loop: ("energyctl.LoopRecord", LOOP)}
         for nb in self.neighbours:  # raw neighbour messages, as received
             topics[f"{base}/z_nb/{nb.id}"] = ("energyctl.Interaction", Z)
+        topics.update(self._extra_topics())
         stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
         path = f"{c.log_dir}/{c.id}-{stamp}.mcap"
         meta = {"config": {"json": c.model_dump_json()}, "core": {"json": core_metadata(
@@ -169,6 +170,10 @@ class Daemon(DaemonQueries):
         return RingRecorder(path, topics, meta, slots=c.log_queue, rotate_bytes=c.log_rotate_bytes,
                             rotate_s=c.log_rotate_s, writer_cpus=c.log_writer_cpus,
                             groups=[(self.t_meas, self.t_zin, self.t_cmd)])  # offer_group(0, ...) in _tick
+
+    def _extra_topics(self) -> dict:
+        """Further recorded topics of a kind of daemon: topic -> (schema name, codec)."""
+        return {}
 
     def _tick_writer(self):
         """With the compiled core: a service._kernel.TickWriter checking an ordinary sample (accept; _checked is its

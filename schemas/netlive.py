@@ -1,0 +1,78 @@
+"""A network scenario run live: the rig's and the coordinator's configs, and each source daemon's config derived from
+the scenario. Every process of a live network reads the same scenario file (with the same ``--set`` overrides), so
+the plant, the layer and each controller agree on it without another config to keep in step.
+
+Keys (PREFIX: ``prefix``, default energyctl):
+
+* the rig publishes each source's measurement on PREFIX/SOURCE/meas, each line end's interaction variable on
+  PREFIX/LINE/z/NODE and each load's on PREFIX/LOAD/z, and the layer's sample on PREFIX/RIG/grid; it takes each
+  source's command from PREFIX/SOURCE/cmd and breaker commands on PREFIX/RIG/breaker (a query);
+* the coordinator publishes each source's allocation on PREFIX/SOURCE/alloc and answers PREFIX/COORDINATOR/status
+  and PREFIX/COORDINATOR/connect (the plug-in handshake);
+* every process holds the liveliness token PREFIX/ID/alive.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from schemas.component import ComponentConfig, LoopConfig, Named, NetworkRole, OutgoingForecastConfig, ZenohConfig
+from schemas.network import NetworkScenario
+
+
+class NetworkRigConfig(Named):
+    """``energyctl plant --config NETWORK.toml``: the hardware-in-the-loop stand-in of a whole network."""
+
+    id: str = Field(default="rig", description="the rig's id (its grid and breaker keys, its liveliness token)")
+    pacing: Literal["lockstep", "realtime"] = Field(
+        default="lockstep", description="lockstep: sample k + 1 after every live source answered sample k (or "
+                                        "lockstep_timeout_s passed, counted); realtime: on the wall clock")
+    lockstep_timeout_s: Annotated[float, Field(gt=0, le=60)] = Field(default=2.0, description="longest wait for a "
+                                                                                              "source's answer, s")
+    wait_for: list[str] = Field(default=["coordinator"], description="ids whose liveliness the rig waits for before "
+                                                                     "its first sample (the sources connected at the "
+                                                                     "start are waited for too)")
+    wait_s: Annotated[float, Field(gt=0)] = Field(default=30.0, description="how long to wait for them, s")
+    out: str | None = Field(default=None, description="the rig's MCAP log (true state, events, breakers)")
+    realtime_spin_us: Annotated[float, Field(ge=0, le=10_000)] = Field(
+        default=60.0, description="realtime: spin this long before each sampling instant instead of sleeping, us")
+
+
+class CoordinatorConfig(Named):
+    """``energyctl coordinator NETWORK.toml``: the interconnection layer as a Zenoh service."""
+
+    id: str = Field(default="coordinator", description="the coordinator's id")
+    rig: str = Field(default="rig", description="the rig's id: its grid sample and its breaker query")
+    lockstep: bool = Field(default=True, description="answer every grid sample in order (lockstep) rather than "
+                                                     "only the newest")
+    out: str | None = Field(default=None, description="the coordinator's MCAP log (its allocations, windows, verdicts)")
+    resume_timeout_s: Annotated[float, Field(gt=0)] = Field(default=1.0, description="at start, how long to wait for "
+                                                                                     "each source's config (its "
+                                                                                     "v_ref) to resume from, s")
+    trip_on_loss: bool = Field(default=True, description="a source whose liveliness token disappears is tripped: the "
+                                                         "rig opens its breaker and its share is reallocated")
+
+
+def source_component(net: NetworkScenario, source: str, *, prefix: str = "energyctl", zenoh: ZenohConfig | None = None,
+                     lockstep: bool = True, log_dir: str | None = None, coordinator: str = "coordinator",
+                     connect_at_s: float | None = None, core: str = "auto") -> ComponentConfig:
+    """The daemon config of one source of the network: its controller and its model (with the scenario's model
+    error) as the offline run builds them, the network's rate and loop delay, a sample-triggered loop. connect_at_s
+    None: the time of its first connect event in the scenario, if any."""
+    if source not in net.sources:
+        raise ValueError(f"{source!r} is not a source of {net.name!r} (sources: {', '.join(net.sources)})")
+    src = net.sources[source]
+    if connect_at_s is None:
+        connect_at_s = next((e.t_s for e in net.events if e.kind == "connect" and e.target == source), None)
+    lines = [name for name, ln in net.lines.items() if source in (ln.a, ln.b)]
+    role = NetworkRole(network=net.name, coordinator=coordinator, lines=lines, idle_power_W=net.layer.idle_power_W,
+                       extrapolate_s=net.layer.extrapolate_s, connect_at_s=connect_at_s)
+    v_nom = net.nominal_v_V
+    return ComponentConfig(
+        id=source, prefix=prefix, zenoh=zenoh or ZenohConfig(), model=src.model_params(), controller=src.controller,
+        loop=LoopConfig(rate_hz=net.timing.control_rate_hz, trigger="sample", lockstep=lockstep),
+        delay_samples=net.timing.delay_samples, core=core, log_dir=log_dir, network=role,
+        forecast=OutgoingForecastConfig(enabled=False), forecast_window_s=net.layer.window_s,
+        meas_v_min_V=0.25 * v_nom, meas_v_max_V=2.5 * v_nom)

@@ -1,0 +1,357 @@
+"""The interconnection layer as a Zenoh service (energyctl coordinator).
+
+Its loop thread takes the rig's grid sample (PREFIX/RIG/grid: each source's measured v and i_out, its breaker, the
+buses' measured voltages, the loads' powers) and drives the same pure layer as the offline run
+(service.layer.InterconnectionLayer): each sample it publishes every source's allocation on PREFIX/SOURCE/alloc
+(P^{r,in} and its rate, the v_ref it last moved, the breaker, Z^{r,in} for the window); once per window it moves
+v_ref and sets the next window's ranges.
+
+* **Plug-in handshake** (PREFIX/ID/connect, JSON ``{"source", "controller", "at_seq"}``): the loop thread runs the
+  source's forecast for its share of the current window (the layer's ``connect_check``, with the v_ref the layer
+  holds for it) and only if Z^{r,out} is inside Z^{r,in} asks the rig to close its breaker (PREFIX/RIG/breaker),
+  then answers with the verdict, the reason and both ranges. In lockstep a request for sample k is answered after
+  sample k - 1 was fully processed, so the breaker closes at k as offline.
+* **Trip on lost liveliness**: a connected source whose token PREFIX/SOURCE/alive disappears is tripped: the rig is
+  asked to open its breaker, and from the sample that shows it open its share goes to the others.
+* **Coming back**: at start it asks each source's daemon for its config and resumes from the v_ref it reports; the
+  sources, meanwhile, kept their last v_ref and fell back to their own terminals (service.daemon.netsource).
+
+Query handling, JSON and logging stay off the loop thread's per-sample path except for the connect check, which is
+rare and, in lockstep, must happen between two samples.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+from collections import deque
+from queue import Empty, Queue
+
+import zenoh
+
+from schemas.codec import ALLOC, GRID, LAYER_SRC, LAYER_TICK, DecodeError
+from schemas.netlive import CoordinatorConfig
+from schemas.network import NetworkScenario
+from schemas.scenario import ControllerConfig
+from service.daemon.bus import key, open_session, publisher, queued, request
+from service.layer import InterconnectionLayer
+from service.plant.network import NetworkPlant
+
+
+class Coordinator:
+    """See the module docstring. ``open()``, then ``run(stop)`` on a thread, then ``close()``."""
+
+    def __init__(self, cfg: CoordinatorConfig, net: NetworkScenario, impl: str = "auto"):
+        if net.layer.v_ref_mode == "per-source":
+            raise ValueError("layer.v_ref_mode: 'per-source' needs each source's mode every sample; the live "
+                             "coordinator supports 'common'")
+        self.cfg, self.net, self.impl = cfg, net, impl
+        self.layer = InterconnectionLayer(net, NetworkPlant(net, impl))  # the plant only for its loads' profiles
+        self.names = list(net.sources)
+        self.ns = len(self.names)
+        self.d = net.timing.delay_samples
+        self.seq, self.t = -1, 0.0
+        self.connected = [s.connected for s in net.sources.values()]
+        self.alive: dict[str, bool | None] = dict.fromkeys(self.names)
+        self.window = 0
+        self.zin: list[tuple | None] = [None] * self.ns
+        self.want = [0.0] * self.ns
+        self.verdicts: deque = deque(maxlen=20)
+        self.trips: deque = deque(maxlen=20)
+        self.counters = {"grid_samples": 0, "missing_samples": 0, "rejected": 0, "connect_requests": 0,
+                         "accepted": 0, "refused": 0, "trips": 0, "restarts": 0}
+        self.last_reject = ""
+        self.resumed: dict[str, float] = {}
+        self._connects: Queue = Queue()
+        self._stop = threading.Event()
+        self.session = None
+        self.recorder = None
+        self.log_path = None
+
+    # ---------------------------------------------------------------- setup / teardown
+    def open(self) -> None:
+        c = self.cfg
+        self.session = s = open_session(c.zenoh)
+        self.grid_sub, self.grid_q = queued(s, key(c.prefix, c.rig, "grid"), 0 if c.lockstep else 4)
+        self.pubs = [publisher(s, key(c.prefix, name, "alloc")) for name in self.names]
+        self.alive_sub = s.liveliness().declare_subscriber(key(c.prefix, "*", "alive"),
+                                                           zenoh.handlers.FifoChannel(256), history=True)
+        if c.out:
+            self.recorder = self._open_recorder()
+        self._resume()
+        self.queryables = {leaf: s.declare_queryable(key(c.prefix, c.id, leaf), zenoh.handlers.FifoChannel(64))
+                           for leaf in ("status", "connect")}
+        self._threads = [threading.Thread(target=self._serve, args=(leaf,), name=leaf, daemon=True)
+                         for leaf in self.queryables]
+        for t in self._threads:
+            t.start()
+        self.token = s.liveliness().declare_token(key(c.prefix, c.id, "alive"))
+
+    def _open_recorder(self):
+        from service.logio.mcapfile import git_revision
+        from service.logio.ring import RingRecorder
+
+        c = self.cfg
+        base = f"{c.prefix}/{c.id}"
+        self.t_tick, self.t_ev = f"{base}/layer/tick", f"{base}/events"
+        self.t_src = [f"{base}/layer/{name}" for name in self.names]
+        topics = {self.t_tick: ("energyctl.LayerTick", LAYER_TICK), self.t_ev: ("energyctl.Event", None)}
+        for t in self.t_src:
+            topics[t] = ("energyctl.LayerSource", LAYER_SRC)
+        self.log_path = c.out
+        meta = {"scenario": {"json": self.net.model_dump_json()}, "coordinator": {"json": c.model_dump_json()},
+                "build": {"git": git_revision()}}
+        rec = RingRecorder(c.out, topics, meta)
+        rec.wait_ready()
+        return rec
+
+    def _resume(self) -> None:
+        """Each source's v_ref as its daemon reports it (a coordinator that comes back resumes from them)."""
+        c = self.cfg
+        for j, name in enumerate(self.names):
+            ok, reply = request(self.session, key(c.prefix, name, "config"), None, c.resume_timeout_s)
+            if ok and isinstance(reply.get("controller"), dict) and "v_ref_V" in reply["controller"]:
+                self.layer.v_ref[j] = float(reply["controller"]["v_ref_V"])
+                self.resumed[name] = self.layer.v_ref[j]
+        if self.resumed:
+            self._event(0.0, 0, "resume", {"v_ref_V": self.resumed})
+
+    def close(self) -> None:
+        self._stop.set()
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.session is not None:
+            try:
+                self.token.undeclare()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+            self.session.close()
+            for t in self._threads:
+                t.join(timeout=0.5)
+            self.session = None
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    # ---------------------------------------------------------------- the loop
+    def run(self, max_samples: int | None = None) -> None:
+        q, stop = self.grid_q, self._stop
+        while not stop.is_set():
+            self._poll_alive()
+            self._take_connects()
+            try:
+                _, payload = q.get(timeout=0.005)
+            except Empty:
+                continue
+            self.grid(payload)
+            self._take_connects()
+            if max_samples is not None and self.counters["grid_samples"] >= max_samples:
+                break
+
+    def grid(self, payload: bytes) -> None:
+        """One grid sample: allocate, publish, record, and close the window if it ends here."""
+        try:
+            seq, t, v, i_out, connected, bus_v, load_P = GRID.decode(payload)
+        except DecodeError as e:
+            self._reject(f"grid.{e.field}: invalid ({e.reason})")
+            return
+        if len(v) != self.ns:
+            self._reject(f"grid.v: {len(v)} sources, the scenario has {self.ns}")
+            return
+        if seq <= self.seq:
+            if seq != 0:
+                self._reject(f"grid.seq: {seq} not after {self.seq}")
+                return
+            self.counters["restarts"] += 1  # the rig restarted: a new run
+            self.layer = InterconnectionLayer(self.net, self.layer.loads)
+        elif self.seq >= 0 and seq > self.seq + 1:
+            self.counters["missing_samples"] += seq - self.seq - 1
+        layer, ns = self.layer, self.ns
+        topology = connected != self.connected or self.seq < 0
+        self.seq, self.t, self.connected = seq, t, connected
+        self.counters["grid_samples"] += 1
+        if topology and layer.active:
+            self.window = seq // layer.per_window
+            self.zin = layer.ranges(self.window, connected)
+        P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(ns)]
+        want, rate = layer.allocate(seq, P, connected)
+        self.want = want
+        w, zin, v_ref = self.window, self.zin, layer.v_ref
+        for j in range(ns):
+            z = zin[j]
+            self.pubs[j].put(ALLOC.encode(seq, t, want[j], rate[j], v_ref[j], connected[j], w, z is not None,
+                                          *(z if z is not None else (0.0, 0.0, 0.0, 0.0))))
+        rec = self.recorder
+        if rec is not None:
+            for j in range(ns):
+                rec.offer(self.t_src[j], t, (seq, t, v[j], i_out[j], connected[j], want[j], rate[j], v_ref[j]))
+            rec.offer(self.t_tick, t, (seq, t, sum(bus_v) / len(bus_v) if bus_v else 0.0, sum(load_P),
+                                       bool(bus_v)))
+        layer.accumulate(bus_v, v, P, load_P)
+        win_k, moves = layer.window_end(seq, connected, [True] * ns, [False] * ns)
+        if win_k is not None:
+            self.window = win_k
+            if layer.active:
+                self.zin = layer.ranges(win_k, connected)
+
+    # ---------------------------------------------------------------- plug-in and trips
+    def _take_connects(self) -> None:
+        """Answer the connect requests that are due: in lockstep one for sample k once sample k - 1 is done."""
+        lockstep = self.cfg.lockstep
+        held = []
+        while True:
+            try:
+                query, body = self._connects.get_nowait()
+            except Empty:
+                break
+            at = body.get("at_seq")
+            if lockstep and at is not None and self.seq < at - 1:
+                held.append((query, body))
+                continue
+            self._connect(query, body)
+        for item in held:
+            self._connects.put(item)
+
+    def _connect(self, query, body: dict) -> None:
+        c = self.cfg
+        self.counters["connect_requests"] += 1
+        try:
+            name = body.get("source")
+            if name not in self.names:
+                raise ValueError(f"source: {name!r} is not a source of {self.net.name!r}")
+            s = self.names.index(name)
+            controller = ControllerConfig.model_validate(body.get("controller") or {})
+        except (ValueError, TypeError) as e:
+            self._answer(query, False, {"error": str(e)})
+            return
+        at = body.get("at_seq")
+        k = at if isinstance(at, int) else self.seq + 1
+        window = k // self.layer.per_window
+        if self.connected[s]:
+            reply = {"accepted": True, "reason": "already connected", "window": window}
+            self._answer(query, True, reply)
+            return
+        # the v_ref the layer holds for it (it may have moved it at the end of sample k - 1)
+        controller = controller.model_copy(update={"v_ref_V": self.layer.v_ref[s]})
+        f = self.layer.connect_check(s, controller, window, self.connected, self.d, self.impl)
+        reply = {"source": name, "accepted": f.feasible, "reason": f.reason, "window": window, "at_seq": at,
+                 "Z_out": {"P": [f.P_lo, f.P_hi], "P_dot": [f.P_dot_lo, f.P_dot_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]},
+                 "Z_in": {"P": list(f.z_in[:2]), "Qdot": list(f.z_in[2:])}}
+        if f.feasible:
+            ok, r = request(self.session, key(c.prefix, c.rig, "breaker"),
+                            {"target": name, "closed": True, "at_seq": at, "by": c.id}, 5.0)
+            if not ok:
+                reply.update(accepted=False, reason=f"the rig did not close the breaker: {r.get('error', r)}")
+        self.counters["accepted" if reply["accepted"] else "refused"] += 1
+        self.verdicts.append({"t": self.t, "seq": self.seq, **reply})
+        self._event(self.t, k, "connect", reply)
+        self._answer(query, True, reply)
+
+    def _poll_alive(self) -> None:
+        while (tok := self.alive_sub.try_recv()) is not None:
+            parts = str(tok.key_expr).split("/")
+            name = parts[-2] if len(parts) >= 2 else ""
+            if name not in self.alive:
+                continue
+            up = tok.kind == zenoh.SampleKind.PUT
+            was = self.alive[name]
+            self.alive[name] = up
+            if not up and was is not False and self.cfg.trip_on_loss and self.connected[self.names.index(name)]:
+                self._trip(name)
+
+    def _trip(self, name: str) -> None:
+        """Its daemon is gone: the rig opens its breaker (a thread: the loop keeps allocating meanwhile)."""
+        c = self.cfg
+        self.counters["trips"] += 1
+        t, seq = self.t, self.seq
+
+        def ask() -> None:
+            ok, r = request(self.session, key(c.prefix, c.rig, "breaker"),
+                            {"target": name, "closed": False, "at_seq": None, "by": c.id}, 5.0)
+            item = {"t": t, "seq": seq, "source": name, "reason": "liveliness token lost", "rig_ok": ok,
+                    "applied_at_seq": r.get("at_seq") if ok else None, "error": "" if ok else r.get("error", "")}
+            self.trips.append(item)
+            self._event(t, seq, "trip", item)
+            how = "the rig opened its breaker" if ok else "the rig did not answer: " + item["error"]
+            print(f"energyctl coordinator: {name} lost its liveliness at t = {t:.4f} s: tripped ({how})",
+                  file=sys.stderr, flush=True)
+
+        threading.Thread(target=ask, name=f"trip-{name}", daemon=True).start()
+
+    # ---------------------------------------------------------------- queries (their own threads)
+    def _serve(self, leaf: str) -> None:
+        q = self.queryables[leaf]
+        own = key(self.cfg.prefix, self.cfg.id, leaf)
+        while True:
+            try:
+                query = q.recv()
+            except Exception:  # noqa: BLE001 - channel closed at shutdown
+                return
+            if leaf == "connect":
+                try:
+                    body = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
+                    if not isinstance(body, dict):
+                        raise ValueError("expected a JSON object {\"source\", \"controller\", \"at_seq\"}")
+                except ValueError as e:
+                    self._answer(query, False, {"error": f"connect: {e}"})
+                    continue
+                self._connects.put((query, body))  # the loop thread answers (and drops) it
+                continue
+            self._answer(query, True, self.status(), own)
+
+    def _answer(self, query, ok: bool, body: dict, own: str | None = None) -> None:
+        try:
+            if ok:
+                query.reply(own or key(self.cfg.prefix, self.cfg.id, "connect"), json.dumps(body))
+            else:
+                query.reply_err(json.dumps(body))
+        except Exception:  # noqa: BLE001 - the asker went away
+            pass
+        finally:
+            query.drop()
+
+    def status(self) -> dict:
+        layer, net = self.layer, self.net
+        weight = sum(sh for sh, c in zip(layer.shares, self.connected, strict=True) if c) or 1.0
+        return {
+            "id": self.cfg.id, "network": net.name, "seq": self.seq, "t": self.t, "window": self.window,
+            "window_s": net.layer.window_s, "mode": net.layer.mode, "loss_frac": layer.loss_frac,
+            "sources": {name: {"share": layer.shares[j], "share_now": layer.shares[j] / weight if self.connected[j]
+                               else 0.0, "connected": self.connected[j], "alive": self.alive[name],
+                               "P_r_in": self.want[j], "v_ref_V": layer.v_ref[j],
+                               "Z_in": list(self.zin[j]) if self.zin[j] is not None else None}
+                        for j, name in enumerate(self.names)},
+            "verdicts": list(self.verdicts), "trips": list(self.trips), "resumed_v_ref": self.resumed,
+            "counters": dict(self.counters), "last_reject": self.last_reject,
+            "logging": None if self.recorder is None else {"path": self.log_path, "written": self.recorder.written,
+                                                           "drops": dict(self.recorder.drops)},
+        }
+
+    # ---------------------------------------------------------------- helpers
+    def _reject(self, text: str) -> None:
+        self.counters["rejected"] += 1
+        self.last_reject = text
+
+    def _event(self, t: float, seq: int, kind: str, detail: dict) -> None:
+        if self.recorder is not None:
+            self.recorder.offer(self.t_ev, t, (t, max(seq, 0), kind, json.dumps(detail)))
+
+
+def run_coordinator(cfg: CoordinatorConfig, net: NetworkScenario, stop: threading.Event, impl: str = "auto",
+                    log=sys.stderr) -> dict:
+    """Open, run until stop, close; the final status."""
+    co = Coordinator(cfg, net, impl)
+    co.open()
+    loop = threading.Thread(target=co.run, name="loop", daemon=True)
+    loop.start()
+    print(f"energyctl coordinator: {cfg.id} for {net.name!r} ({len(co.names)} sources, window "
+          f"{net.layer.window_s:g} s, {'lockstep' if cfg.lockstep else 'newest sample'})"
+          + (f", resumed v_ref from {sorted(co.resumed)}" if co.resumed else ""), file=log, flush=True)
+    while not stop.is_set() and loop.is_alive():
+        stop.wait(0.05)
+    co.stop()
+    loop.join(timeout=1.0)
+    status = co.status()
+    co.close()
+    return status

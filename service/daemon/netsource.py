@@ -1,0 +1,245 @@
+"""A source on a live network: today's daemon, its P^{r,in} coming from the coordinator's allocation.
+
+What differs from a single component's daemon (service.daemon.daemon):
+
+* each tick it follows the newest allocation on PREFIX/ID/alloc (schemas.messages.Allocation): P^{r,in} carried
+  forward along its rate by its age (at most ``network.extrapolate_s``), the v_ref the layer moved, its breaker as
+  the rig reported it, and Z^{r,in} for the window, which its feasibility monitor checks P^{r,out} against;
+* around the core it runs the offline network's source controller (service.core.source.SourceController): idle
+  mode when disconnected or asked for little, and the fallback to its own terminal power when the allocation is
+  older than ``network.stale_s`` of sample time — a coordinator gone or cut off leaves it on its last v_ref, falling
+  back as the offline design does;
+* the line ends at its terminal (PREFIX/LINE/z/ID) are its neighbours: shown in status and logged, not followed;
+* the plug-in handshake: from ``network.connect_at_s`` on, while its breaker is open, it asks the coordinator
+  (PREFIX/COORDINATOR/connect, announcing its controller); the coordinator checks the source's forecast Z^{r,out}
+  against its share of the window and only then has the rig close its breaker. In lockstep the request is made
+  inside the tick before its answer goes out (the rig waits for that answer, so the breaker closes at the next
+  sample, as offline); in realtime a thread makes it and the loop goes on.
+
+The same inputs give the same commands as the offline network (service.netsim), so a lockstep run over Zenoh equals
+the offline run to the bit, and its log replays identical (idle periods as held rows, v_ref moves as events).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+
+import zenoh
+
+from schemas.codec import ALLOC, CMD, DecodeError, Z
+from schemas.component import ComponentConfig
+from service.core.interaction import outgoing_power_at
+from service.core.source import ACTIVE, IDLE, MODES, SourceController
+from service.core.types import Sample
+from service.daemon.bus import key, latest, request
+from service.daemon.daemon import Daemon, _now_ns
+from service.daemon.neighbours import Neighbour
+
+
+class NetworkSourceDaemon(Daemon):
+    """See the module docstring."""
+
+    def __init__(self, cfg: ComponentConfig):
+        if cfg.network is None:
+            raise ValueError("network: a network source daemon needs its network role (energyctl run --network)")
+        super().__init__(cfg.model_copy(update={"neighbours": []}))
+        self.role = cfg.network
+        self.ctl = SourceController(self.core, self.period_s, idle_power_W=self.role.idle_power_W)
+        self.alloc = Neighbour(self.role.coordinator, None)
+        self.alloc_vals: tuple | None = None  # the newest allocation's values (schemas.codec.ALLOC order)
+        self.lines: list[Neighbour] = []
+        self.connected: bool | None = None  # its breaker as the newest allocation reported it (None: none yet)
+        self.v_ref_moves = 0
+        self.fallback_ticks = 0
+        self._range_window = -1
+        k_connect = None if self.role.connect_at_s is None else round(self.role.connect_at_s / self.period_s)
+        self._connect_seq = k_connect  # the sample from which the breaker is to close
+        self._next_request_t = -1.0  # sample time of the next connect request allowed
+        self.handshake: dict = {"requests": 0, "last": None}
+        self._asking = threading.Event()  # realtime: a request is under way in its thread
+
+    # ---------------------------------------------------------------- setup
+    def _extra_topics(self) -> dict:
+        c = self.cfg
+        base = f"{c.prefix}/{c.id}"
+        self.t_alloc = f"{base}/alloc"
+        out = {self.t_alloc: ("energyctl.Allocation", ALLOC)}
+        for ln in self.role.lines:
+            out[f"{base}/z_nb/{ln}"] = ("energyctl.Interaction", Z)
+        return out
+
+    def open(self) -> None:
+        super().open()
+        if self._fast is not None:  # the compiled tick steps the bare core; this daemon steps the source controller
+            self._fast.close()
+            self._fast = None
+        c, s = self.cfg, self.session
+        self.alloc.sub = latest(s, key(c.prefix, c.id, "alloc"))
+        self.alloc.topic = f"{c.prefix}/{c.id}/alloc"
+        self.lines = [Neighbour(ln, latest(s, f"{c.prefix}/{ln}/z/{c.id}")) for ln in self.role.lines]
+        for nb in self.lines:
+            nb.topic = f"{c.prefix}/{c.id}/z_nb/{nb.id}"
+        self.neighbours = [self.alloc, *self.lines]  # a lockstep tick waits for each one's message for its sample
+        self._by_id = {self.role.coordinator: self.alloc}
+        self.alive_sub = s.liveliness().declare_subscriber(key(c.prefix, self.role.coordinator, "alive"),
+                                                           zenoh.handlers.FifoChannel(64), history=True)
+
+    # ---------------------------------------------------------------- inputs
+    def _poll_neighbours(self, now: int) -> None:
+        while (tok := self.alive_sub.try_recv()) is not None:
+            self.alloc.alive = tok.kind == zenoh.SampleKind.PUT
+        a = self.alloc
+        m = a.sub.try_recv()
+        if m is not None:
+            try:
+                v = ALLOC.decode(m.payload.to_bytes())
+            except DecodeError as e:
+                self._reject(f"alloc.{e.field}: invalid", now, e.reason)
+            else:
+                a.seq, a.t, a.P, a.P_dot = v[0], v[1], v[2], v[3]
+                self.alloc_vals = v
+                a.rx_ns = now
+                a.count += 1
+                if self.recorder is not None:
+                    self.recorder.offer(a.topic, v[1], v)
+        for nb in self.lines:
+            z = nb.sub.try_recv()
+            if z is None:
+                continue
+            try:
+                v = Z.decode(z.payload.to_bytes())
+            except DecodeError as e:
+                self._reject(f"{nb.id}.{e.field}: invalid", now, e.reason)
+                continue
+            nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
+            nb.rx_ns = now
+            nb.count += 1
+            if self.recorder is not None:
+                self.recorder.offer(nb.topic, v[1], v)
+
+    # ---------------------------------------------------------------- the tick
+    def _tick(self, payload: bytes, now: int) -> None:
+        self.put_ns = self.control_ns = 0
+        self._poll_neighbours(now)
+        v = self._checked(payload, now)
+        if v is None:
+            return
+        t_control = _now_ns()
+        seq, t = v[0], v[1]
+        if self.state == "degraded":
+            self.state = "active"
+        if self._last_seq >= 0 and seq > self._last_seq + 1:
+            self.stats.missing_samples += seq - self._last_seq - 1
+        t_prev = self.last_sample[1] if self.last_sample is not None else t
+        self._last_seq = seq
+        self.last_sample = v
+        role, ctl, rec, a = self.role, self.ctl, self.recorder, self.alloc
+        av = self.alloc_vals
+        if av is not None:
+            new = ctl.set_v_ref(av[4])  # the layer's move, applied before this sample as offline
+            if new is not None:
+                self.v_ref_moves += 1
+                if rec is not None:
+                    rec.offer(self.t_ev, t_prev, (t_prev, seq, "config", json.dumps({"v_ref_V": new.v_ref_V})))
+            self.connected = bool(av[5])
+            if av[7] and av[6] != self._range_window:
+                self._range_window = av[6]
+                self.feas.set_range(av[6], av[8:12])
+        fresh = a.count > 0 and t - a.t <= role.stale_s
+        P_in = outgoing_power_at(t, a.t, a.P, a.P_dot, role.stale_s, role.extrapolate_s) if fresh else a.P
+        connected = True if self.connected is None else self.connected  # unknown: its own terminal decides
+        limited = False
+        if self.state == "active":
+            du, du_next = ctl.step(Sample(seq, t, v[2], v[3], v[4], v[5]), P_in, 0.0, connected, fresh)
+            stepped = ctl.mode != IDLE
+            if stepped:
+                limited = self.core.out.limited
+                if not fresh:
+                    self.fallback_ticks += 1
+        else:  # inactive: hold the source voltage
+            du = du_next = 0.0
+            stepped = False
+            self.core.hold(seq)
+        self.reference = "allocation" if fresh else "own terminal (fallback)"
+        if self._connect_seq is not None and not connected:
+            self._maybe_connect(seq, t)
+        cmd = CMD.encode(seq, t, du, du_next, limited)
+        self._remember(seq, v[4], du)
+        if rec is not None:
+            rec.offer_group(0, t, *v, seq, t, ctl.P_in_used, 0.0, stepped, seq, t, du, du_next, limited)
+        t_put = _now_ns()
+        self.control_ns = t_put - t_control
+        self.cmd_pub.put(cmd)
+        self.put_ns = _now_ns() - t_put
+        self.last_cmd = (seq, t, du, du_next, limited)
+        est = self.core.out.est
+        if stepped and ctl.mode == ACTIVE and est is not None and t >= 5.0 * self.core.cfg.deriv_tau_s:
+            self.feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
+        n = self.stats.ticks
+        if rec is not None:
+            if n % 1000 == 1:
+                st = self.stats
+                rec.offer(self.t_loop, t, (t, n, st.overruns, st.no_new_sample, st.missing_samples,
+                                           st.window_exec_max, st.window_period_max))
+                st.window_exec_max = st.window_period_max = 0
+            if stepped and n % self._est_every == self._est_phase and est is not None:
+                rec.offer(self.t_est, t, (t, *self.core.est_record()))
+        if n % self._z_every == 0 and est is not None:
+            self._publish_z(t)
+
+    # ---------------------------------------------------------------- the plug-in handshake
+    def _maybe_connect(self, seq: int, t: float) -> None:
+        """Ask to connect when due (its breaker open, connect_at reached, not asked within connect_retry_s)."""
+        if seq + 1 < self._connect_seq or t < self._next_request_t or self._asking.is_set():
+            return
+        self._next_request_t = t + self.role.connect_retry_s
+        body = {"source": self.cfg.id, "controller": self.core.cfg.model_dump(), "t": t,
+                "at_seq": seq + 1 if self.cfg.loop.lockstep else None}
+        if self.cfg.loop.lockstep:  # the rig waits for this tick's answer: the breaker closes at the next sample
+            self._ask(body)
+        else:
+            self._asking.set()
+            threading.Thread(target=self._ask, args=(body,), name="connect", daemon=True).start()
+
+    def _ask(self, body: dict) -> None:
+        c = self.cfg
+        try:
+            ok, reply = request(self.session, key(c.prefix, self.role.coordinator, "connect"), body, 5.0)
+        finally:
+            self._asking.clear()
+        self.handshake["requests"] += 1
+        self.handshake["last"] = {"t": body["t"], "accepted": bool(ok and reply.get("accepted")),
+                                  "reason": reply.get("reason") or reply.get("error", ""),
+                                  "Z_out": reply.get("Z_out"), "Z_in": reply.get("Z_in")}
+        if self.recorder is not None:
+            self.recorder.offer(self.t_ev, body["t"], (body["t"], max(self._last_seq, 0), "connect",
+                                                       json.dumps(self.handshake["last"])))
+        if not self.handshake["last"]["accepted"]:
+            print(f"energyctl[{c.id}]: connect refused: {self.handshake['last']['reason']}", file=sys.stderr,
+                  flush=True)
+
+    # ---------------------------------------------------------------- status
+    def status(self) -> dict:
+        out = super().status()
+        now = _now_ns()
+        a = self.alloc
+        av = self.alloc_vals
+        last_t = self.last_sample[1] if self.last_sample else None
+        out["network"] = {
+            "network": self.role.network,
+            "mode": MODES[self.ctl.mode],
+            "breaker": None if self.connected is None else ("closed" if self.connected else "open"),
+            "allocation": None if av is None else {
+                "from": self.role.coordinator, "seq": av[0], "t": av[1], "P_r_in": av[2], "P_r_in_dot": av[3],
+                "v_ref_V": av[4], "window": av[6], "Z_in": list(av[8:12]) if av[7] else None,
+                "age_s": None if last_t is None else last_t - av[1],
+                "stale": last_t is None or last_t - av[1] > self.role.stale_s,
+                "coordinator_alive": a.alive, "received_ago_s": (now - a.rx_ns) / 1e9},
+            "P_r_in_used": self.ctl.P_in_used, "v_ref_V": self.ctl.v_ref_V, "v_ref_moves": self.v_ref_moves,
+            "fallback_ticks": self.fallback_ticks, "mode_switches": self.ctl.switches,
+            "lines": {nb.id: {"P_r_out": nb.P, "messages": nb.count} for nb in self.lines},
+            "handshake": dict(self.handshake),
+        }
+        return out
