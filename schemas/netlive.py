@@ -36,6 +36,9 @@ class NetworkRigConfig(Named):
                                                                      "start are waited for too)")
     wait_s: Annotated[float, Field(gt=0)] = Field(default=30.0, description="how long to wait for them, s")
     out: str | None = Field(default=None, description="the rig's MCAP log (true state, events, breakers)")
+    interaction_rate_hz: Annotated[float, Field(gt=0, le=100_000)] = Field(
+        default=1000.0, description="how often the lines' and loads' interaction variables are published, Hz (for "
+                                    "the sources' status and logs; the layer's sample goes every period)")
     realtime_spin_us: Annotated[float, Field(ge=0, le=10_000)] = Field(
         default=60.0, description="realtime: spin this long before each sampling instant instead of sleeping, us")
 
@@ -72,7 +75,10 @@ def source_component(net: NetworkScenario, source: str, *, prefix: str = "energy
     v_nom = net.nominal_v_V
     return ComponentConfig(
         id=source, prefix=prefix, zenoh=zenoh or ZenohConfig(), model=src.model_params(), controller=src.controller,
-        loop=LoopConfig(rate_hz=net.timing.control_rate_hz, trigger="sample", lockstep=lockstep),
+        # realtime: after a stall, answer the queued samples whose commands can still act (within the loop delay)
+        # in order, not only the newest (as the single source's realtime stack, clients.live)
+        loop=LoopConfig(rate_hz=net.timing.control_rate_hz, trigger="sample", lockstep=lockstep,
+                        catch_up=1 if lockstep else max(1, min(256, net.timing.delay_samples))),
         delay_samples=net.timing.delay_samples, core=core, log_dir=log_dir, network=role,
         forecast=OutgoingForecastConfig(enabled=False), forecast_window_s=net.layer.window_s,
         meas_v_min_V=0.25 * v_nom, meas_v_max_V=2.5 * v_nom)

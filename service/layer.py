@@ -44,6 +44,7 @@ class InterconnectionLayer:
         self.v_ref = list(self.v_ref0)  # what each source's v_ref was last moved to (V)
         self.taus = source_taus(net)
         self.want_prev, self.want_rate = [0.0] * ns, [0.0] * ns
+        self.k_prev: int | None = None  # the sample of the previous allocation
         self.rate_alpha = self.T / (self.T + RATE_TAU_S)
         self.win_sum, self.win_n = 0.0, 0  # the buses' mean measured voltage, summed over the window
         self.win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
@@ -65,10 +66,16 @@ class InterconnectionLayer:
             want = [-(self.shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
         else:
             want = [-P[j] for j in range(ns)]
-        for j in range(ns):  # its rate, filtered: a message carries both, and a late one is carried forward by its age
-            raw = (want[j] - self.want_prev[j]) / self.T if k else 0.0
+        # its rate, filtered: a message carries both, and a late one is carried forward by its age; over the samples
+        # since the previous call (a live coordinator that answers only the newest sample skips some), none at the
+        # first
+        k_prev = self.k_prev
+        dt = (k - k_prev) * self.T if k_prev is not None and k > k_prev else 0.0
+        for j in range(ns):
+            raw = (want[j] - self.want_prev[j]) / dt if dt else 0.0
             self.want_rate[j] += self.rate_alpha * (raw - self.want_rate[j])
             self.want_prev[j] = want[j]
+        self.k_prev = k
         return want, self.want_rate
 
     def accumulate(self, bus_meas: list[float], term_v: list[float], P: list[float], load_W: list[float]) -> None:

@@ -92,6 +92,8 @@ class NetworkRig:
         for peer in dict.fromkeys(wait):
             if not wait_alive(session, key(p, peer, "alive"), cfg.wait_s, self.stop):
                 raise RuntimeError(f"{peer!r} not alive on the bus within {cfg.wait_s:g} s")
+            if peer in self.alive:  # seen: waited for from sample 0 on (the token subscriber may tell later)
+                self.alive[peer] = True
         for name, pub in zip(self.names, self.meas_pubs, strict=True):
             if (net.sources[name].connected or self._asks(name)) and not matched(pub, cfg.wait_s, self.stop):
                 raise RuntimeError(f"no subscriber for {key(p, name, 'meas')} within {cfg.wait_s:g} s")
@@ -110,6 +112,7 @@ class NetworkRig:
         spin_ns = int(cfg.realtime_spin_us * 1e3)
         now_ns = time.monotonic_ns
         rows, stop = self._rows, self.stop
+        z_every = max(1, round(net_rate(self.net) / cfg.interaction_rate_hz))
         self.cpu = ProcessCpu().start()
         t_wall0 = time.perf_counter()
         next_ns = now_ns() + period_ns
@@ -131,11 +134,12 @@ class NetworkRig:
             self._apply_breakers(k, t)
             samples = model.sample(k)
             connected = model.connected()
-            for pub, (_, _, P) in zip(self.line_pubs, model.line_ends(), strict=True):
-                pub.put(Z.encode(k, t, P, 0.0, 0.0, 0.0, 0.0, 0, P, P, 0.0, 0.0))
-            for q, pub in enumerate(self.load_pubs):
-                P = plant.load_power(q, t)
-                pub.put(Z.encode(k, t, P, 0.0, 0.0, 0.0, 0.0, 0, P, P, 0.0, 0.0))
+            if k % z_every == 0:  # the lines' and loads' interaction variables: for the daemons' status and logs
+                for pub, (_, _, P) in zip(self.line_pubs, model.line_ends(), strict=True):
+                    pub.put(Z.encode(k, t, P, 0.0, 0.0, 0.0, 0.0, 0, P, P, 0.0, 0.0))
+                for q, pub in enumerate(self.load_pubs):
+                    P = plant.load_power(q, t)
+                    pub.put(Z.encode(k, t, P, 0.0, 0.0, 0.0, 0.0, 0, P, P, 0.0, 0.0))
             self.grid_pub.put(GRID.encode(k, t, [s.v for s in samples], [s.i_load for s in samples], connected,
                                           model.bus_measurements(), model.load_powers()))
             for pub, s in zip(self.meas_pubs, samples, strict=True):
@@ -146,6 +150,13 @@ class NetworkRig:
                 r = [model.command(j, k, *(answers[j] if answers[j] is not None else (None, 0.0)))
                      for j in range(ns)]
             else:
+                if k == 0:
+                    # arm: the converters are enabled by the sources' first answers, and the sampling clock starts
+                    # then (as the single source's rig: the stack's first round trips are slow while it warms up)
+                    for j, a in enumerate(self._await(0)):
+                        if a is not None:
+                            model.arrive(j, 0, *a)
+                    next_ns = now_ns() + period_ns
                 self._drain()
                 r = [model.take(j, k) for j in range(ns)]
             rows.append(t)
@@ -293,6 +304,9 @@ class NetworkRig:
         n = len(res.t)
         self.counters["missed"] = sum(max(0, n - 1 - self.answered[s]) for s in self.names
                                       if self.net.sources[s].connected)
+        for name, sched in zip(self.names, self.model.scheds, strict=True):  # late, planned and held periods
+            for k, v in sched.counts.items():
+                self.counters[f"{name}_{k}"] = v
         out = {"metrics": res.metrics, "counters": dict(self.counters), "pacing": self.cfg.pacing,
                "control_rate_hz": self.net.timing.control_rate_hz, "samples": n,
                "wall_s": getattr(self, "wall_s", None),
@@ -302,6 +316,10 @@ class NetworkRig:
             write_rig_log(self.cfg.out, res, self.cfg.prefix, out)
         out["result"] = res
         return out
+
+
+def net_rate(net: NetworkScenario) -> float:
+    return net.timing.control_rate_hz
 
 
 def add_load_events(res: NetworkResult) -> None:

@@ -81,7 +81,7 @@ class NetworkSourceDaemon(Daemon):
         self.lines = [Neighbour(ln, latest(s, f"{c.prefix}/{ln}/z/{c.id}")) for ln in self.role.lines]
         for nb in self.lines:
             nb.topic = f"{c.prefix}/{c.id}/z_nb/{nb.id}"
-        self.neighbours = [self.alloc, *self.lines]  # a lockstep tick waits for each one's message for its sample
+        self.neighbours = [self.alloc]  # a lockstep tick waits for the allocation for its sample (not the lines)
         self._by_id = {self.role.coordinator: self.alloc}
         self.alive_sub = s.liveliness().declare_subscriber(key(c.prefix, self.role.coordinator, "alive"),
                                                            zenoh.handlers.FifoChannel(64), history=True)
