@@ -172,6 +172,9 @@ class NetworkRole(Strict):
     idle_power_W: Annotated[float, Field(ge=0)] = Field(default=30.0, description="below this |P^{r,in}| (and "
                                                                                   "whenever disconnected) it holds "
                                                                                   "its voltage (idle mode), W")
+    idle_tau_s: Annotated[float, Field(gt=0)] = Field(default=0.005, description="idle mode's time constant, s")
+    open_idle: Literal["droop", "hold"] = Field(default="droop", description="disconnected: the idle droop law, or "
+                                                                             "hold u")
     stale_s: Annotated[float, Field(gt=0)] = Field(default=0.01, description="an allocation older than this (sample "
                                                                              "time) is stale: the source falls back "
                                                                              "to its own terminal power, s")

@@ -71,6 +71,7 @@ def source_component(net: NetworkScenario, source: str, *, prefix: str = "energy
         connect_at_s = next((e.t_s for e in net.events if e.kind == "connect" and e.target == source), None)
     lines = [name for name, ln in net.lines.items() if source in (ln.a, ln.b)]
     role = NetworkRole(network=net.name, coordinator=coordinator, lines=lines, idle_power_W=net.layer.idle_power_W,
+                       idle_tau_s=net.layer.idle_tau_s, open_idle=net.layer.open_idle,
                        extrapolate_s=net.layer.extrapolate_s, connect_at_s=connect_at_s)
     v_nom = net.nominal_v_V
     return ComponentConfig(

@@ -157,6 +157,12 @@ class LayerConfig(Strict):
                                                               "figures; 10 ms diverged 5 ms late ones)")
     idle_power_W: NonNeg = Field(default=30.0, description="below this |power| a source's lines count as idle "
                                                            "(excluded from the live sum; its controller idles)")
+    idle_tau_s: Pos = Field(default=0.005, description="an idle source moves u to v_ref - 0.4 ohm x i with this time "
+                                                       "constant, s")
+    open_idle: Literal["droop", "hold"] = Field(
+        default="droop", description="what a disconnected source does: 'droop' as an idle one (u -> v_ref - 0.4 ohm x "
+                                     "i), 'hold' u (du/dt = 0). At 1 kHz with 2-4 ms of loop delay the droop law rang "
+                                     "the open terminal's L-C resonance (57 Hz) up until it diverged; hold does not")
 
 
 class NetworkTiming(Strict):

@@ -6,7 +6,8 @@ of the design notes come around it, and this wrapper answers them without touchi
 * **idle** — y_z = y_ref says nothing about v when P^{r,in} is near zero, and a source that is not connected
   has no power to follow: below ``idle_power_W`` (and whenever it is disconnected) the source holds its voltage
   instead, u -> v_ref - R_droop i with time constant ``idle_tau_s`` (du/dt = (u_target - u) / tau, within the
-  slew limit). It leaves idle above ``idle_exit`` x that power. The core is told what was applied
+  slew limit); with ``hold_when_open`` a disconnected one holds u instead. It leaves idle above ``idle_exit`` x that
+  power. The core is told what was applied
   (``core.hold(seq, du_dt)``), so its delay prediction stays right across the switch.
 * **stale interaction variables** — when the neighbours' messages are older than the caller's bound
   (``fresh`` False), P^{r,in} falls back to the source's own terminal power, -v i_out from its own sample: the
@@ -31,8 +32,11 @@ class SourceController:
     """The core of one source with its idle mode and its stale-data fallback (see the module docstring)."""
 
     def __init__(self, core, period_s: float, idle_power_W: float = 30.0, idle_exit: float = 1.5,
-                 droop_ohm: float = 0.4, idle_tau_s: float = 5e-3):
+                 droop_ohm: float = 0.4, idle_tau_s: float = 5e-3, hold_when_open: bool = False):
         self.core = core
+        # disconnected: hold u (du/dt = 0) instead of the droop law; at a low rate with milliseconds of loop delay
+        # the droop law cannot damp the open terminal's L-C resonance and rang it up (1 kHz, 2-4 ms: diverged)
+        self.hold_when_open = hold_when_open
         self.T = period_s
         self.idle_power_W, self.idle_exit = idle_power_W, idle_exit
         self.droop_ohm, self.idle_tau_s = droop_ohm, idle_tau_s
@@ -75,6 +79,9 @@ class SourceController:
             self.idle = idle
         if idle:
             self.mode = IDLE
+            if not connected and self.hold_when_open:
+                self.core.hold(s.seq, 0.0)
+                return 0.0, 0.0
             lim = self.core.cfg.limits
             target = self.v_ref_V - self.droop_ohm * s.i
             r = (target - s.u) / self.idle_tau_s

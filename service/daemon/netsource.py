@@ -46,7 +46,9 @@ class NetworkSourceDaemon(Daemon):
             raise ValueError("network: a network source daemon needs its network role (energyctl run --network)")
         super().__init__(cfg.model_copy(update={"neighbours": []}))
         self.role = cfg.network
-        self.ctl = SourceController(self.core, self.period_s, idle_power_W=self.role.idle_power_W)
+        self.ctl = SourceController(self.core, self.period_s, idle_power_W=self.role.idle_power_W,
+                                    idle_tau_s=self.role.idle_tau_s,
+                                    hold_when_open=self.role.open_idle == "hold")
         self.alloc = Neighbour(self.role.coordinator, None)
         self.alloc_vals: tuple | None = None  # the newest allocation's values (schemas.codec.ALLOC order)
         self.lines: list[Neighbour] = []
