@@ -245,7 +245,8 @@ class Coordinator:
                 reply.update(accepted=False, reason=f"the rig did not close the breaker: {r.get('error', r)}")
         self.counters["accepted" if reply["accepted"] else "refused"] += 1
         self.verdicts.append({"t": self.t, "seq": self.seq, **reply})
-        self._event(self.t, k, "connect", reply)
+        self._event(self.t, k, "connect", {**reply, "controller": controller.model_dump(),
+                                          "connected": list(self.connected), "loss_frac": self.layer.loss_frac})
         self._answer(query, True, reply)
 
     def _poll_alive(self) -> None:

@@ -34,6 +34,7 @@ SERVICE_LAYERS = {
     "service.netsim": ("service.core", "service.plant", "service.forecast", "service.sim", "service.layer",
                        "service.netrig"),
     "service.coordinator": ("service",),
+    "service.layer_replay": ("service.layer", "service.logio", "service.plant"),
     "service.priority": (),
     "service.logio": ("service.logio", "service.core", "service.priority", "service"),
     "service.replay": ("service.core", "service.logio"),

@@ -17,7 +17,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Feeds the logged measurements and incoming interaction variables through a core "
                     "rebuilt from the log's 'core' record, sample by sample (no clock), and compares "
                     "every command bit for bit: prints 'identical' (exit 0) or the first divergence "
-                    "(exit 1). --set/--controller run a what-if into --out NEW.mcap.")
+                    "(exit 1). --set/--controller run a what-if into --out NEW.mcap. A coordinator's log "
+                    "(energyctl coordinator --out) replays its allocations and plug-in verdicts through the layer "
+                    "rebuilt from the scenario in it.")
     rp.add_argument("log", nargs="+", metavar="LOG.mcap", help="a log, or the parts of a rotated log in order")
     rp.add_argument("--set", action="append", metavar="controller.key=value")
     rp.add_argument("--controller", choices=CONTROLLERS)
@@ -37,6 +39,10 @@ def run(args: argparse.Namespace) -> int:
 
     if (args.set or args.controller) and not args.out:
         raise ScenarioError("replay: a what-if (--set/--controller) needs --out NEW.mcap")
+    from service.layer_replay import is_coordinator_log
+
+    if len(args.log) == 1 and is_coordinator_log(args.log[0]):
+        return replay_layer(args)
     try:
         res = replay(args.log, args.set, args.controller, args.out, progress=not args.json,
                      use_index=not args.no_index, impl=args.core,
@@ -57,3 +63,20 @@ def run(args: argparse.Namespace) -> int:
         print(f"diverged at t = {d['t']:.6f} s (seq {d['seq']}): {d['field']} logged {d['logged']!r}, "
               f"replayed {d['replayed']!r}")
     return 0 if (res["identical"] or args.out) else 1
+
+
+def replay_layer(args: argparse.Namespace) -> int:
+    """A coordinator's log: its allocations and plug-in verdicts recomputed by the layer."""
+    from service.layer_replay import replay_coordinator
+
+    res = replay_coordinator(args.log[0], args.core)
+    if args.json:
+        print(json.dumps(res))
+    elif res["identical"]:
+        print(f"identical: {res['allocations']} allocations over {res['samples']} samples and {res['verdicts']} "
+              f"plug-in verdicts reproduced bit for bit ({res['gaps']} samples the coordinator skipped)")
+    else:
+        first = (res["mismatches"] or res["verdicts_differing"] or [{}])[0]
+        print(f"differs: {res['n_mismatches']} of {res['allocations']} allocations, "
+              f"{len(res['verdicts_differing'])} verdicts; first: {json.dumps(first)}")
+    return 0 if res["identical"] else 1

@@ -1,0 +1,96 @@
+"""Replay of a coordinator's log (energyctl coordinator --out): the layer rebuilt from the scenario in the log,
+fed what the coordinator saw each sample, must give every allocation it sent (P^{r,in}, its rate, v_ref) bit for
+bit, and each plug-in verdict it gave. Pure apart from reading the file: no clock, no socket."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from schemas.network import NetworkScenario
+from schemas.scenario import ControllerConfig
+from service.layer import InterconnectionLayer
+from service.logio.reader import LogError, messages, scan
+from service.plant.network import NetworkPlant
+
+
+def is_coordinator_log(path: str | Path) -> bool:
+    return "coordinator" in scan(path)["metadata"]
+
+
+def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
+    """{"identical", "samples", "allocations", "mismatches" (the first few), "verdicts", "verdicts_differing",
+    "gaps"}: gaps count the samples the coordinator did not answer (a realtime coordinator answers the newest;
+    the layer is fed what it answered, as live) and a rig's restarts."""
+    meta = scan(path)["metadata"]
+    if "coordinator" not in meta or "scenario" not in meta:
+        raise LogError(f"{path}: not a coordinator log (no 'coordinator' and 'scenario' metadata)")
+    net = NetworkScenario.model_validate_json(meta["scenario"]["json"])
+    cfg = json.loads(meta["coordinator"]["json"])
+    base = f"{cfg['prefix']}/{cfg['id']}"
+    names = list(net.sources)
+    ticks = messages(path, f"{base}/layer/tick")
+    per = {n: {d["seq"]: d for d in messages(path, f"{base}/layer/{n}")} for n in names}
+    events = messages(path, f"{base}/events")
+    plant = NetworkPlant(net, impl)
+    layer = InterconnectionLayer(net, plant)
+    for e in events:
+        if e["kind"] == "resume":
+            for n, v in json.loads(e["detail"])["v_ref_V"].items():
+                layer.v_ref[names.index(n)] = v
+    connects = {}
+    for e in events:
+        if e["kind"] == "connect":
+            d = json.loads(e["detail"])
+            connects.setdefault(e["seq"], []).append(d)
+    out = {"samples": 0, "allocations": 0, "mismatches": [], "n_mismatches": 0, "verdicts": 0,
+           "verdicts_differing": [], "gaps": 0}
+    prev = None
+    verdict_seqs = sorted(connects)
+    vi = 0
+    for tk in ticks:
+        k = tk["seq"]
+        if prev is not None and k != prev + 1:
+            out["gaps"] += 1
+            if k == 0:  # the rig restarted: the coordinator started a new layer
+                layer = InterconnectionLayer(net, plant)
+        prev = k
+        # plug-in verdicts answered before this sample (after the previous one), with the layer's state then
+        while vi < len(verdict_seqs) and verdict_seqs[vi] <= k:
+            for d in connects[verdict_seqs[vi]]:
+                if "controller" not in d or d.get("reason") == "already connected":
+                    continue
+                s = names.index(d["source"])
+                f = layer.connect_check(s, ControllerConfig.model_validate(d["controller"]), d["window"],
+                                        d["connected"], net.timing.delay_samples, impl)
+                out["verdicts"] += 1
+                rig_refused = not d["accepted"] and d["reason"].startswith("the rig")
+                if (f.feasible != d["accepted"] and not rig_refused) or (not f.feasible and f.reason != d["reason"]):
+                    out["verdicts_differing"].append({"seq": verdict_seqs[vi], "source": d["source"],
+                                                      "logged": [d["accepted"], d["reason"]],
+                                                      "replayed": [f.feasible, f.reason]})
+            vi += 1
+        rows = [per[n].get(k) for n in names]
+        if any(r is None for r in rows):
+            out["gaps"] += 1
+            continue
+        out["samples"] += 1
+        v = [r["v"] for r in rows]
+        i_out = [r["i_out"] for r in rows]
+        connected = [bool(r["connected"]) for r in rows]
+        P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(len(names))]
+        v_ref_sent = list(layer.v_ref)
+        want, rate = layer.allocate(k, P, connected)
+        for j, n in enumerate(names):
+            r = rows[j]
+            out["allocations"] += 1
+            got = (want[j], rate[j], v_ref_sent[j])
+            logged = (r["P_r_in"], r["P_r_in_dot"], r["v_ref_V"])
+            if got != logged:
+                out["n_mismatches"] += 1
+                if len(out["mismatches"]) < 5:
+                    out["mismatches"].append({"seq": k, "source": n, "logged": logged, "replayed": got})
+        layer.accumulate([tk["bus_v_mean"]] if tk["has_buses"] else [], v, P, [tk["load_W"]])
+        layer.window_end(k, connected, [True] * len(names), [False] * len(names))
+    out["identical"] = out["n_mismatches"] == 0 and not out["verdicts_differing"] and out["samples"] > 0
+    return out
