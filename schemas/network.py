@@ -159,6 +159,11 @@ class LayerConfig(Strict):
                                                            "(excluded from the live sum; its controller idles)")
     idle_tau_s: Pos = Field(default=0.005, description="an idle source moves u to v_ref - 0.4 ohm x i with this time "
                                                        "constant, s")
+    plug_in_ramp_s: NonNeg = Field(default=0.0, description="live-sum: a source that connects takes its share "
+                                                            "linearly over this long, s (0: at once)")
+    open_v_ref: Literal["common", "bus"] = Field(
+        default="bus", description="the v_ref a disconnected source gets each window: the common one, or the "
+                                      "buses' mean voltage (it waits at the voltage it will close onto)")
     open_idle: Literal["droop", "hold"] = Field(
         default="droop", description="what a disconnected source does: 'droop' as an idle one (u -> v_ref - 0.4 ohm x "
                                      "i), 'hold' u (du/dt = 0). At 1 kHz with 2-4 ms of loop delay the droop law rang "

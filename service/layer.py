@@ -45,6 +45,9 @@ class InterconnectionLayer:
         self.taus = source_taus(net)
         self.want_prev, self.want_rate = [0.0] * ns, [0.0] * ns
         self.k_prev: int | None = None  # the sample of the previous allocation
+        self.ramp_ticks = int(round(self.cfg.plug_in_ramp_s / self.T))
+        self.was_connected = [s.connected for s in net.sources.values()]
+        self.connected_at = [-1] * ns  # the sample each source last connected at (-1: connected from the start)
         self.rate_alpha = self.T / (self.T + RATE_TAU_S)
         self.win_sum, self.win_n = 0.0, 0  # the buses' mean measured voltage, summed over the window
         self.win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
@@ -60,10 +63,18 @@ class InterconnectionLayer:
         0 for a disconnected source) and which are connected."""
         lay, ns = self.cfg, self.ns
         if lay.mode == "live-sum":
+            shares = self.shares
+            if self.ramp_ticks:  # a source that just connected takes its share over plug_in_ramp_s
+                for j in range(ns):
+                    if connected[j] and not self.was_connected[j]:
+                        self.connected_at[j] = k
+                    self.was_connected[j] = connected[j]
+                shares = [sh * min(1.0, (k - self.connected_at[j]) / self.ramp_ticks) if self.connected_at[j] >= 0
+                          else sh for j, sh in enumerate(shares)]
             carrying = [j for j in range(ns) if connected[j] and abs(P[j]) >= lay.idle_power_W]
             total = sum(P[j] for j in carrying)
-            weight = sum(self.shares[j] for j in carrying) or 1.0
-            want = [-(self.shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
+            weight = sum(shares[j] for j in carrying) or 1.0
+            want = [-(shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
         else:
             want = [-P[j] for j in range(ns)]
         # its rate, filtered: a message carries both, and a late one is carried forward by its age; over the samples
@@ -106,7 +117,11 @@ class InterconnectionLayer:
             for j in range(self.ns):
                 if not fresh[j]:
                     continue
-                if lay.v_ref_mode == "per-source" and connected[j] and active[j]:
+                if not connected[j] and lay.open_v_ref == "bus":
+                    # waiting to connect: at the buses' voltage, so that closing its breaker moves little (a
+                    # synchronising close); the common v_ref comes with its first window connected
+                    target = self.win_sum / self.win_n
+                elif lay.v_ref_mode == "per-source" and connected[j] and active[j]:
                     # where it sits (sharing exactly needs v_ref = v at its terminal), moved with the buses
                     target = self.win_term[j] / self.win_n + correction
                 else:

@@ -282,9 +282,12 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls) -> dict
              "bus_back_in_band_s": {b: _back_in_band(t, v, ev.t, t1, v_nom, BAND_SETTLE)
                                     for b, v in res.buses.items()},
              "bus_min_V": {b: float(v[window].min()) if window.any() else None for b, v in res.buses.items()},
+             # the terminals of the sources that carry load when things settle (an idle one waiting to connect
+             # follows the buses, window by window)
              "terminals_back_in_band_s": {
                  s: _back_in_band(t, res.sources[s]["v"], ev.t, t1, float(np.mean(res.sources[s]["v"][settled])),
-                                  BAND_SETTLE) if settled.any() else None for s in names},
+                                  BAND_SETTLE) for s in names
+                 if settled.any() and abs(float(np.mean(res.sources[s]["P"][settled]))) >= net.layer.idle_power_W},
              "terminals_near_v_ref_s": {
                  s: _settle_time(t[window], terminal_dev[s][window], BAND_SETTLE, ev.t) for s in names}}
         if n and settled.any():
@@ -319,3 +322,62 @@ def _settle_time(t: np.ndarray, err: np.ndarray, bound: float, t0: float) -> flo
     if above[-1] == len(t) - 1:
         return None
     return float(t[above[-1] + 1] - t0)
+
+
+# the offline issue's acceptance limits, checked by energyctl demo --network on the live run and on its logs
+LIMITS = {"step_bus_back_s": 0.150, "step_bus_min_V": 75.5, "bus_ss_dev_pct": 1.0, "sharing_pp": 2.0,
+          "trip_bus_back_s": 0.200, "trip_bus_min_V": 74.0, "trip_carried_pct": 95.0, "inrush_A": 20.0,
+          "bus_move_V": 2.0}
+
+
+def acceptance_checks(res: NetworkResult) -> list[dict]:
+    """Each check of the network acceptance criteria on a run: {"check", "value", "limit", "ok"}. After a load step:
+    every bus back within +-2 % within 150 ms and never below 75.5 V; after a trip: back within 200 ms, never below
+    74 V, and the sources left carry >= 95 % of what is delivered; a connect: accepted, line inrush <= 20 A, bus move
+    <= 2 V; steady bus deviation <= 1 %, sharing error <= 2 percentage points; no divergence."""
+    m, L = res.metrics, LIMITS
+    out = [{"check": "no divergence", "value": m["diverged_at_s"], "limit": None, "ok": not m["diverged"]}]
+
+    def add(name: str, value, limit, ok: bool) -> None:
+        out.append({"check": name, "value": value, "limit": limit, "ok": bool(ok)})
+
+    T = 1.0 / res.net.timing.control_rate_hz
+    ends = sorted({e["t_s"] for e in m["events"]})
+    for e in m["events"]:
+        what = f"{e['kind']} {e['target']} at {e['t_s']:g} s"
+        backs = list(e["bus_back_in_band_s"].values())
+        back = None if None in backs else max(backs, default=0.0)
+        lows = [v for v in e["bus_min_V"].values() if v is not None]
+        low = min(lows, default=None)
+        if e["kind"] == "load":
+            add(f"{what}: buses back within ±2 % (s)", back, L["step_bus_back_s"],
+                back is not None and back <= L["step_bus_back_s"])
+            add(f"{what}: lowest bus voltage (V)", low, L["step_bus_min_V"],
+                low is not None and low >= L["step_bus_min_V"])
+        elif e["kind"] == "trip":
+            add(f"{what}: buses back within ±2 % (s)", back, L["trip_bus_back_s"],
+                back is not None and back <= L["trip_bus_back_s"])
+            add(f"{what}: lowest bus voltage (V)", low, L["trip_bus_min_V"],
+                low is not None and low >= L["trip_bus_min_V"])
+            t1 = next((x for x in ends if x > e["t_s"] + 1e-9), float(res.t[-1]) + T)
+            sel = (res.t >= t1 - 0.05) & (res.t < t1)
+            if sel.any() and e["target"] in res.sources:
+                total = sum(abs(float(np.mean(res.sources[s]["P"][sel]))) for s in res.sources) or 1.0
+                rest = 100.0 * (1.0 - abs(float(np.mean(res.sources[e["target"]]["P"][sel]))) / total)
+                add(f"{what}: the other sources carry (% of the load)", rest, L["trip_carried_pct"],
+                    rest >= L["trip_carried_pct"])
+        elif e["kind"] in ("connect", "close"):
+            add(f"{what}: accepted", e["accepted"], True, e["accepted"])
+            if e["accepted"]:
+                add(f"{what}: line inrush (A)", e.get("inrush_A"), L["inrush_A"],
+                    e.get("inrush_A") is not None and e["inrush_A"] <= L["inrush_A"])
+                moves = [v for v in (e.get("bus_move_V") or {}).values() if v is not None]
+                mv = max(moves, default=None)
+                add(f"{what}: bus move (V)", mv, L["bus_move_V"], mv is not None and mv <= L["bus_move_V"])
+    for b, d in m["buses"].items():
+        add(f"bus {b}: steady deviation (%)", d["ss_dev_pct"], L["bus_ss_dev_pct"],
+            d["ss_dev_pct"] is not None and d["ss_dev_pct"] <= L["bus_ss_dev_pct"])
+    errs = [abs(s["sharing_error_pp"]) for s in m["sources"].values() if s["sharing_error_pp"] is not None]
+    worst = max(errs, default=None)
+    add("steady sharing error (pp)", worst, L["sharing_pp"], worst is not None and worst <= L["sharing_pp"])
+    return out
