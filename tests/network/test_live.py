@@ -1,0 +1,151 @@
+"""The network live on loopback: the rig, the coordinator and one daemon per source as separate processes.
+
+Lockstep over Zenoh must give the offline run's bits (every source's v, i, applied du/dt and the commands its daemon
+sent), the plug-in handshake must close the breaker at the sample the offline layer does, each daemon's log must
+replay identical and the coordinator's log its allocations; a daemon killed with SIGKILL is tripped and its share
+taken over; a coordinator that goes away leaves the sources on their own terminals, and one that comes back resumes
+from what they report. Every process is stopped at the end, also on failure (LiveNetwork.close)."""
+
+from __future__ import annotations
+
+import re
+import signal
+
+import numpy as np
+import pytest
+
+from clients.netlive import LiveNetwork
+from clients.peers.netrig import read_rig_log
+from schemas.network import load_network
+from service.logio.reader import messages
+from service.netsim import acceptance_checks, run_network
+from tests.conftest import ROOT, SCENARIOS
+
+DEMO = ROOT / "clients" / "embedded" / "network-demo.toml"
+
+
+def shortened(tmp_path, src, **times) -> str:
+    """A copy of a scenario with its times moved: duration, the load step, and events by index (t_s)."""
+    text = src.read_text()
+    if "duration_s" in times:
+        text = re.sub(r"duration_s = [0-9.]+", f"duration_s = {times['duration_s']}", text)
+    if "step_s" in times:
+        text = re.sub(r"steps = \[\[[0-9.]+,", f"steps = [[{times['step_s']},", text)
+    new = iter(times.get("events", []))
+    text = re.sub(r"(\[\[events\]\]\nt_s = )[0-9.]+", lambda m: f"{m.group(1)}{next(new)}", text)
+    p = tmp_path / src.name
+    p.write_text(text)
+    return str(p)
+
+
+def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
+    """Load step, trip and plug-in in 0.13 s: the rig's trace and every daemon's commands against run_network."""
+    scen = shortened(tmp_path, DEMO, duration_s=0.13, step_s=0.03, events=[0.06, 0.09])
+    net = load_network(scen)
+    off = run_network(net)
+    assert [(e.kind, e.target, e.accepted) for e in off.events] == [("load", "P", True), ("trip", "S2", True),
+                                                                      ("connect", "S3", True)]
+    with LiveNetwork(scen, tmp_path / "run") as live:
+        live.start()
+        res = live.wait_rig(180)
+        live.close()
+        assert res["counters"]["timeouts"] == 0
+        rig = read_rig_log(str(live.logs / "rig.mcap"))
+        assert len(rig.t) == len(off.t) == 1300
+        for s in net.sources:
+            for k in ("v", "i", "u"):
+                assert float(np.max(np.abs(rig.sources[s][k] - off.sources[s][k]))) <= 1e-9, (s, k)
+            [log] = live.daemon_logs(s)
+            cmd = {d["seq"]: d["du_dt"] for d in messages(log, f"{s}/cmd")}
+            sent = np.array([cmd[k] for k in range(len(off.t))])
+            assert float(np.max(np.abs(sent - off.sources[s]["cmd_du"]))) <= 1e-9, s
+        # the live events: the scenario's trip (the rig's) and the plug-in the coordinator granted, at the same ticks
+        live_ev = sorted((round(e.t, 6), e.kind, e.target) for e in rig.events)
+        assert live_ev == sorted((round(e.t, 6), e.kind, e.target) for e in off.events)
+        # each daemon's log replays identical; the coordinator's its allocations and its verdict
+        from service.layer_replay import replay_coordinator
+        from service.replay import replay
+
+        for s in net.sources:
+            assert replay([str(p) for p in live.daemon_logs(s)], progress=False)["identical"], s
+        rc = replay_coordinator(str(live.logs / "coordinator.mcap"))
+        assert rc["identical"] and rc["verdicts"] == 1 and rc["samples"] == 1300, rc
+        # the acceptance checks from the rig's log agree with those of the offline run
+        assert [c["ok"] for c in acceptance_checks(rig)] == [c["ok"] for c in acceptance_checks(off)]
+
+
+def test_a_refused_plug_in_stays_open_and_says_why(tmp_path):
+    """S3 with K = 10 /s cannot follow its share: the coordinator refuses, the breaker stays open, the daemon says
+    why, and nothing moves (as offline)."""
+    scen = shortened(tmp_path, SCENARIOS / "network" / "plug-in.toml", duration_s=0.08, step_s=0.02, events=[0.05])
+    sets = ["sources.S3.controller.K_per_s=10.0"]
+    off = run_network(load_network(scen, sets))
+    assert [e.accepted for e in off.events if e.kind == "connect"] == [False]
+    with LiveNetwork(scen, tmp_path / "run", sets=sets) as live:
+        live.start()
+        live.wait_rig(120)
+        rig = read_rig_log(str(live.logs / "rig.mcap"))
+        assert not [e for e in rig.events if e.kind == "connect"]
+        for s in ("S1", "S2", "S3"):
+            assert float(np.max(np.abs(rig.sources[s]["v"] - off.sources[s]["v"]))) <= 1e-9
+        live.close()
+        status = (live.workdir / "S3.status.json").read_text()
+        import json
+
+        hs = json.loads(status)["network"]["handshake"]
+        assert hs["requests"] >= 1 and hs["last"]["accepted"] is False
+        assert hs["last"]["reason"] == next(e.reason for e in off.events if e.kind == "connect")
+        assert json.loads(status)["network"]["breaker"] == "open"
+
+
+@pytest.fixture
+def trip_scenario(tmp_path):
+    """two-source at 2.4 kW with no timed event (the trip comes from a killed daemon), 0.6 s."""
+    text = (SCENARIOS / "network" / "two-source-trip.toml").read_text()
+    text = text[:text.index("[[events]]")]
+    text = re.sub(r"duration_s = [0-9.]+", "duration_s = 0.6", text)
+    p = tmp_path / "trip-live.toml"
+    p.write_text(text)
+    return str(p)
+
+
+def test_a_daemon_killed_is_tripped_and_its_share_taken_over(tmp_path, trip_scenario):
+    with LiveNetwork(trip_scenario, tmp_path / "run") as live:
+        live.start()
+        with live.session() as z:
+            live.wait_until(z, "coordinator", lambda st: st["t"] >= 0.2, 60)
+            live.kill("S2", signal.SIGKILL)
+            st = live.wait_until(z, "coordinator", lambda st: not st["sources"]["S2"]["connected"], 30)
+        assert st["trips"] and st["trips"][0]["source"] == "S2" and st["sources"]["S1"]["share_now"] == 1.0
+        res = live.wait_rig(120)
+        rig = read_rig_log(str(live.logs / "rig.mcap"))
+    assert not res["metrics"]["diverged"]
+    [trip] = [e for e in res["metrics"]["events"] if e["kind"] == "trip"]
+    assert trip["target"] == "S2" and 0.2 <= trip["t_s"] < 0.6
+    assert trip["bus_back_in_band_s"]["bus"] is not None and trip["bus_back_in_band_s"]["bus"] <= 0.2, trip
+    late = rig.t >= rig.t[-1] - 0.05
+    assert abs(float(np.mean(rig.sources["S2"]["P"][late]))) < 0.05 * float(np.mean(rig.sources["S1"]["P"][late]))
+
+
+def test_the_sources_fall_back_without_the_coordinator_and_it_resumes(tmp_path, trip_scenario):
+    with LiveNetwork(trip_scenario, tmp_path / "run") as live:
+        live.start()
+        with live.session() as z:
+            live.wait_until(z, "coordinator", lambda st: st["t"] >= 0.15, 60)
+            live.kill("coordinator", signal.SIGKILL)
+            # the sources: their allocation goes stale within 10 ms of sample time, and they follow their terminals
+            for s in ("S1", "S2"):
+                st = live.wait_until(z, s, lambda st: st["network"]["allocation"]["stale"], 30)
+                assert st["reference"] == "own terminal (fallback)"
+            v_refs = {s: live.query(z, s)["network"]["v_ref_V"] for s in ("S1", "S2")}
+            live.start_coordinator()
+            co = live.wait_until(z, "coordinator", lambda st: st["seq"] > 0, 30)
+            assert co["resumed_v_ref"] == v_refs  # it resumed from what the daemons reported
+            for s in ("S1", "S2"):
+                live.wait_until(z, s, lambda st: not st["network"]["allocation"]["stale"], 30)
+        res = live.wait_rig(120)
+    assert not res["metrics"]["diverged"]
+    fallback = [(tmp_path / "run" / f"{s}.status.json") for s in ("S1", "S2")]
+    import json
+
+    assert all(json.loads(p.read_text())["network"]["fallback_ticks"] > 0 for p in fallback)
