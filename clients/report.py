@@ -110,15 +110,24 @@ def report(paths: list[str], out_dir: str) -> dict:
         import matplotlib.pyplot as plt
     except ImportError:
         raise ReportError("energyctl report needs matplotlib: python3 -m pip install 'energyctl[report]'") from None
+    heads = [scan(p) for p in paths]
+    coordinators = [p for p, h in zip(paths, heads, strict=True) if "coordinator" in h["metadata"]]
+    nets = [k for k, h in enumerate(heads) if _kind(h["metadata"]) == "network" and "coordinator" not in h["metadata"]]
+    out = Path(out_dir)
+    if nets:  # a network log (energyctl sim NETWORK --out, or a live rig's), with its sources' daemon logs if live
+        if len(nets) > 1:
+            raise ReportError("one network log at a time (a live network: the rig's log and its daemons' logs)")
+        others = [p for k, p in enumerate(paths) if k != nets[0] and p not in coordinators]  # (its figures: replay)
+        bad = [p for p, h in zip(paths, heads, strict=True) if p in others and "config" not in h["metadata"]]
+        if bad:
+            raise ReportError(f"beside a network log only its sources' daemon logs: {bad}")
+        out.mkdir(parents=True, exist_ok=True)
+        lg = load_series(paths[nets[0]])
+        return _network_summary(lg, out, network_report(lg, out, plt, others)["figures"])
     if not 1 <= len(paths) <= 2:
         raise ReportError("report takes one log, or two to compare")
     logs = [load_series(p) for p in paths]
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    if any(is_network_log(lg) for lg in logs):
-        if len(logs) > 1:
-            raise ReportError("a network log is reported on its own")
-        return _network_summary(logs[0], out, network_report(logs[0], out, plt)["figures"])
     figs = []
     n_bands: dict[str, int] = {}
 
@@ -199,6 +208,14 @@ def report(paths: list[str], out_dir: str) -> dict:
             "feasibility_windows": n_bands}
 
 
+def _kind(meta: dict) -> str | None:
+    """The "kind" of the scenario in a log's metadata, if any."""
+    try:
+        return json.loads(meta["scenario"]["json"]).get("kind")
+    except (KeyError, ValueError, AttributeError):
+        return None
+
+
 def _network_summary(log: dict, out: Path, figs: list[str]) -> dict:
     from clients.table import network_tables
 
@@ -268,13 +285,25 @@ def network_series(path: str | Path) -> dict:
                          for e, leaves in cols.items()}, "events": events, "ranges": ranges}
 
 
-def network_report(log: dict, out: Path, plt) -> dict:
+def network_report(log: dict, out: Path, plt, daemon_logs: list[str] = ()) -> dict:
     """Figures of a network log: bus voltages with their band and the events, source powers and shares, each
-    source's incoming interaction variable against its feasibility range per window, the topology."""
+    source's incoming interaction variable against its feasibility range per window, the topology. A live rig's log
+    holds the plant; its sources' daemon logs (daemon_logs) hold what they followed and the ranges they were sent."""
     from schemas.network import NetworkScenario
 
     net = NetworkScenario.model_validate(log["meta"]["scenario"])
     data = network_series(log["path"])
+    for p in daemon_logs:
+        more = network_series(p)
+        for e, leaves in more["elements"].items():
+            data["elements"].setdefault(e, {}).update({k: v for k, v in leaves.items() if k in ("z_in", "alloc")})
+            a = leaves.get("alloc")
+            if a is not None and "window" in a:  # the ranges the coordinator sent, one per window
+                seen = set()
+                for w, has, lo, hi in zip(a["window"], a["has_range"], a["Z_P_min"], a["Z_P_max"], strict=True):
+                    if has and w not in seen:
+                        seen.add(w)
+                        data["ranges"].setdefault(e, []).append({"window": int(w), "P": [lo, hi]})
     el, v_nom = data["elements"], net.nominal_v_V
     figs = []
 
@@ -313,8 +342,11 @@ def network_report(log: dict, out: Path, plt) -> dict:
     ax = ax[:, 0]
     w = net.layer.window_s
     for j, s in enumerate(net.sources):
-        z = el[s]["z_in"]
-        ax[j].plot(z["t"], z["P_r_in"], lw=0.8, label=f"P^r,in {s}")
+        z = el[s].get("z_in")
+        if z is None:  # a live rig's log without its daemons' logs
+            ax[j].plot([], [], label=f"P^r,in {s}: in its daemon's log (report the rig's log with them)")
+        else:
+            ax[j].plot(z["t"], z["P_r_in"], lw=0.8, label=f"P^r,in {s}")
         for n, r in enumerate(data["ranges"].get(s, [])):  # the layer's range for each window it was connected
             k = r["window"]
             ax[j].fill_between([k * w, (k + 1) * w], *r["P"], color="tab:orange", alpha=0.15,

@@ -7,7 +7,7 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from clients.commands.common import DEMO_SCENARIO, load
+from clients.commands.common import DEMO_SCENARIO, EMBEDDED, load
 from clients.options import add_cpus, add_logs, add_nice, add_scenario_set
 from clients.table import metrics_table
 from schemas.scenario import ScenarioError
@@ -23,6 +23,14 @@ DEMO_REALTIME_S = 2.0  # "a few seconds"
 REALTIME_STACK_NOTE = ("every realtime stack also runs controller.load_power=\"reference\" "
                        "controller.regulation=\"energy\" unless the scenario or --set names them")
 DEMO_REALTIME_SETS = ["controller.K_per_s=1500.0", "timing.plant_step_s=5e-5", "controller.observer_gain=0.15"]
+
+
+# the network demo (clients/embedded/network-demo.toml) and, with --realtime, the settings a realtime stack of
+# separate processes keeps on a 2-core machine (docs/benchmarks.md, "Network live"; scenarios/network/realtime.toml)
+NETWORK_DEMO_SCENARIO = EMBEDDED / "network-demo.toml"
+NETWORK_REALTIME_SETS = ["timing.control_rate_hz=1000", "timing.delay_samples=4", 'layer.open_idle="hold"',
+                         "layer.plug_in_ramp_s=0.05"]
+NETWORK_REALTIME_SOURCE_SETS = ["controller.K_per_s=400", "controller.limits.du_dt_max_V_per_s=20000"]
 
 
 def realtime_schedule() -> str:
@@ -59,6 +67,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                                              f"{DEMO_REALTIME_DELAY}); realtime also sets "
                                              f"{' '.join(DEMO_REALTIME_SETS)} unless --set says otherwise; "
                                              f"{REALTIME_STACK_NOTE}")
+    d.add_argument("--network", nargs="?", const=str(NETWORK_DEMO_SCENARIO), metavar="NETWORK.toml",
+                   help="a network instead: the rig, the coordinator and one daemon per source as separate processes "
+                        "on loopback (default scenario: two sources sharing a bus 2:1, a load step, a trip of S2 and "
+                        "a plug-in of S3); an MCAP log per process; exit 0 only if every acceptance check holds, "
+                        "recomputed from the logs as well. With --realtime: "
+                        f"{' '.join(NETWORK_REALTIME_SETS)} and per source {' '.join(NETWORK_REALTIME_SOURCE_SETS)}")
     add_nice(d)
     add_cpus(d)
     add_scenario_set(d)
@@ -72,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.lockstep and args.realtime:
         raise ScenarioError("demo: --lockstep or --realtime, not both")
+    if args.network:
+        return run_network_demo(args)
     # lockstep by default: it regulates in every run and equals energyctl sim; realtime missed in about one 2 s run
     # of ten here (a stall of the shared machine at the wrong moment; docs/limits.md)
     # realtime: the settings measured best here (docs/benchmarks.md), under the user's own --set (which come later)
@@ -144,3 +160,68 @@ def print_live(scn, res: dict) -> None:
         lg = res["daemon"]["logging"]
         print(f"controller log: {res['daemon_log']} ({lg['written']} messages, drops {sum(lg['drops'].values())}, "
               f"{lg['state']}); replay: energyctl replay {res['daemon_log']}")
+
+
+def run_network_demo(args: argparse.Namespace) -> int:
+    """energyctl demo --network: the live network on loopback, its acceptance checks live and from its logs."""
+    from clients.netlive import LiveNetwork
+    from clients.peers.netrig import read_rig_log
+    from schemas.network import load_network
+    from service.netsim import acceptance_checks, run_network
+
+    if args.offline or args.secure:
+        raise ScenarioError("demo --network: runs on loopback Zenoh (no --offline or --secure)")
+    sets = list(args.set or [])
+    if args.realtime:
+        names = list(load_network(args.network, sets).sources)
+        sets = [*NETWORK_REALTIME_SETS, *(f"sources.{n}.{x}" for n in names for x in NETWORK_REALTIME_SOURCE_SETS),
+                *sets]
+    if args.duration:
+        sets.append(f"timing.duration_s={args.duration}")
+    net = load_network(args.network, sets)
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    work = Path(args.logs) / f"network-demo-{stamp}"
+    mode = "realtime" if args.realtime else "lockstep"
+    print(f"energyctl {__version__} demo --network ({mode}, {net.timing.control_rate_hz:g} Hz, "
+          f"{net.timing.delay_samples} samples of loop delay): {net.description}", flush=True)
+    print(f"processes on loopback: rig, coordinator, {', '.join(net.sources)}; logs in {work / 'logs'}", flush=True)
+    t0 = time.perf_counter()
+    with LiveNetwork(args.network, work, sets, realtime=args.realtime) as live:
+        live.start()
+        res = live.wait_rig(600 + 50 * net.timing.duration_s)
+        live.close()
+        logs = live.logs
+    wall = time.perf_counter() - t0
+    rig = read_rig_log(str(logs / "rig.mcap"))
+    from_logs = acceptance_checks(rig)
+    print(network_check_table(res["checks"], from_logs))
+    agree = [(a["check"], a["ok"]) for a in res["checks"]] == [(b["check"], b["ok"]) for b in from_logs]
+    print(f"the checks recomputed from the rig's log {'agree' if agree else 'DO NOT agree'} with the live run's")
+    c = res["counters"]
+    print(f"{res['samples']} samples in {res['wall_s']:.1f} s ({res['rate_achieved_hz']:.0f} samples/s); rig: "
+          f"{c['commands']} commands, {c['timeouts']} timeouts, {c['breaker_commands']} breaker commands")
+    same = None
+    if not args.realtime:
+        off = run_network(net)
+        same = all(float(abs(rig.sources[s]["v"] - off.sources[s]["v"]).max()) == 0.0 for s in net.sources)
+        print(f"lockstep over Zenoh {'equals' if same else 'DIFFERS FROM'} energyctl sim of the same scenario "
+              "(every source's v, bit for bit)")
+    print(f"{wall:.1f} s wall. Logs: {logs}/rig.mcap, coordinator.mcap, <source>-*.mcap")
+    print(f"  replay a source:        energyctl replay {logs}/S1-*.mcap")
+    print(f"  replay the layer:       energyctl replay {logs}/coordinator.mcap")
+    print(f"  figures:                energyctl report {logs}/*.mcap --out {work / 'report'}")
+    ok = all(ch["ok"] for ch in from_logs) and agree and same is not False
+    print("every check holds" if ok else "NOT every check holds")
+    return 0 if ok else 1
+
+
+def network_check_table(live: list[dict], from_logs: list[dict]) -> str:
+    """check | live | from the logs | limit | ok."""
+    from clients.table import render
+
+    def f(x) -> str:
+        return "-" if x is None else f"{x:.4g}" if isinstance(x, float) else str(x)
+
+    rows = [[a["check"], f(a["value"]), f(b["value"]), f(a["limit"]), "ok" if a["ok"] and b["ok"] else "FAIL"]
+            for a, b in zip(live, from_logs, strict=False)]
+    return render(["check", "live", "from the logs", "limit", ""], rows)

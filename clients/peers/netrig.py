@@ -36,7 +36,7 @@ from schemas.netlive import NetworkRigConfig
 from schemas.network import NetworkScenario
 from service.daemon.bus import key, open_session, publisher, queued
 from service.netrig import NetworkRigModel
-from service.netsim import Event, NetworkResult, network_metrics
+from service.netsim import Event, NetworkResult, acceptance_checks, network_metrics
 
 
 class NetworkRig:
@@ -302,6 +302,7 @@ class NetworkRig:
         add_load_events(res)
         res.metrics = network_metrics(res, self.diverged_at, None)
         n = len(res.t)
+        checks = acceptance_checks(res)
         self.counters["missed"] = sum(max(0, n - 1 - self.answered[s]) for s in self.names
                                       if self.net.sources[s].connected)
         for name, sched in zip(self.names, self.model.scheds, strict=True):  # late, planned and held periods
@@ -311,7 +312,7 @@ class NetworkRig:
                "control_rate_hz": self.net.timing.control_rate_hz, "samples": n,
                "wall_s": getattr(self, "wall_s", None),
                "rate_achieved_hz": n / self.wall_s if getattr(self, "wall_s", 0) else None,
-               "cpu": {"rig_pct": self.cpu.pct if self.cpu else None}}
+               "cpu": {"rig_pct": self.cpu.pct if self.cpu else None}, "checks": checks}
         if self.cfg.out:
             write_rig_log(self.cfg.out, res, self.cfg.prefix, out)
         out["result"] = res
