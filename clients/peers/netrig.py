@@ -312,7 +312,8 @@ class NetworkRig:
                "control_rate_hz": self.net.timing.control_rate_hz, "samples": n,
                "wall_s": getattr(self, "wall_s", None),
                "rate_achieved_hz": n / self.wall_s if getattr(self, "wall_s", 0) else None,
-               "cpu": {"rig_pct": self.cpu.pct if self.cpu else None}, "checks": checks}
+               "cpu": {"rig_pct": self.cpu.pct if self.cpu else None}, "checks": checks,
+               "last_answered": dict(self.answered)}
         if self.cfg.out:
             write_rig_log(self.cfg.out, res, self.cfg.prefix, out)
         out["result"] = res
