@@ -132,6 +132,9 @@ class LiveNetwork:
         deadline = time.monotonic() + timeout_s
         last: dict | Exception = {}
         while time.monotonic() < deadline:
+            rig = self.by_name.get("rig")
+            if rig is not None and rig.poll() is not None and rig.returncode != 0:
+                raise RuntimeError(f"the rig failed (exit {rig.returncode}); {self.tails()}")
             try:
                 last = self.query(session, component, what, timeout_s=1.0)
                 if pred(last):

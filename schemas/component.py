@@ -182,7 +182,7 @@ class NetworkRole(Strict):
                                                                                     "forward along its rate by at "
                                                                                     "most this, s")
     connect_at_s: Annotated[float, Field(ge=0)] | None = Field(
-        default=None, description="from this sample time on, while its breaker is open, it asks the coordinator to "
+        default=None, description="from this sample time on (s), while its breaker is open, it asks the coordinator to "
                                   "connect (the plug-in handshake; again after connect_retry_s when refused or "
                                   "tripped); none: it never asks")
     connect_retry_s: Annotated[float, Field(gt=0)] = Field(default=0.5, description="sample time between two "

@@ -135,7 +135,7 @@ def _network(args: argparse.Namespace) -> dict:
 def _network_live(args: argparse.Namespace) -> dict:
     from clients.bench.network_live import bench_network_live
 
-    rates = [float(r) for r in (args.rates or "500,1000,2000,3000").split(",")]
+    rates = [float(r) for r in (args.rates or "1000,1500,2000,3000").split(",")]
     return bench_network_live(args.realtime, rates, args.seconds or 2.0,
                               progress=lambda m: print(f"  {m}"[:400], file=sys.stderr, flush=True))
 
@@ -168,7 +168,7 @@ BENCHES: dict[str, Bench] = {
                                          "until every bus is back within +-2 % after a plug-in, a daemon killed "
                                          "with SIGKILL and the coordinator lost and restarted (--realtime: at 1 kHz, "
                                          "and the highest of --rates at which two-source regulates, with each "
-                                         "process's CPU; default rates 500,1000,2000,3000, --seconds each)"),
+                                         "process's CPU; default rates 1000,1500,2000,3000, --seconds each)"),
     "middleware": Bench(_middleware, "the Zenoh and MCAP facts the daemon's design rests on, re-measured: put cost, "
                                      "one-way and round-trip latency, callback vs polled receive, query round trip, "
                                      "liveliness loss after kill -9, CPU per message, encoding cost, MCAP writes"),
