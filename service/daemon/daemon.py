@@ -367,15 +367,9 @@ class Daemon(DaemonQueries):
                 if nb is not None:
                     nb.alive = tok.kind == zenoh.SampleKind.PUT
         for nb in self.neighbours:
-            z = nb.sub.try_recv()
-            if z is None:
+            v = self._take_z(nb, now)
+            if v is None:
                 continue
-            try:
-                v = Z.decode(z.payload.to_bytes())
-            except DecodeError as e:
-                self._reject(f"{nb.id}.{e.field}: invalid", now, e.reason)
-                continue
-            nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
             w = v[7]
             nb.ranges[w & 1] = (w, v[8:12])
             self._nb_news = True
@@ -383,10 +377,24 @@ class Daemon(DaemonQueries):
                 # whatever the loop's state: a feed-forward check
                 self.forecaster.request(w, box, self.core.cfg, self.config_version)
                 self._fc_asked = w
-            nb.rx_ns = now
-            nb.count += 1
             if self.recorder is not None:
                 self.recorder.offer(nb.topic, v[1], v)
+
+    def _take_z(self, nb: Neighbour, now: int) -> tuple | None:
+        """A neighbour's newest interaction message, if one came: decoded into it (counted, stamped ``now``), or
+        rejected by field."""
+        z = nb.sub.try_recv()
+        if z is None:
+            return None
+        try:
+            v = Z.decode(z.payload.to_bytes())
+        except DecodeError as e:
+            self._reject(f"{nb.id}.{e.field}: invalid", now, e.reason)
+            return None
+        nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
+        nb.rx_ns = now
+        nb.count += 1
+        return v
 
     def _apply_pending(self) -> None:
         """Apply a validated config change or lifecycle transition (called between ticks)."""

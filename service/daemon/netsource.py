@@ -107,18 +107,8 @@ class NetworkSourceDaemon(Daemon):
                 if self.recorder is not None:
                     self.recorder.offer(a.topic, v[1], v)
         for nb in self.lines:
-            z = nb.sub.try_recv()
-            if z is None:
-                continue
-            try:
-                v = Z.decode(z.payload.to_bytes())
-            except DecodeError as e:
-                self._reject(f"{nb.id}.{e.field}: invalid", now, e.reason)
-                continue
-            nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
-            nb.rx_ns = now
-            nb.count += 1
-            if self.recorder is not None:
+            v = self._take_z(nb, now)
+            if v is not None and self.recorder is not None:
                 self.recorder.offer(nb.topic, v[1], v)
 
     # ---------------------------------------------------------------- the tick
