@@ -133,8 +133,9 @@ class LiveNetwork:
         last: dict | Exception = {}
         while time.monotonic() < deadline:
             rig = self.by_name.get("rig")
-            if rig is not None and rig.poll() is not None and rig.returncode != 0:
-                raise RuntimeError(f"the rig failed (exit {rig.returncode}); {self.tails()}")
+            if rig is not None and rig.poll() is not None and component != "rig":
+                raise RuntimeError(f"the rig ended (exit {rig.returncode}) before {component} {what} came true; "
+                                   f"{self.tails()}")
             try:
                 last = self.query(session, component, what, timeout_s=1.0)
                 if pred(last):

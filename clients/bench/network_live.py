@@ -159,10 +159,14 @@ def rate_run(work: Path, rate_hz: float, seconds: float) -> dict:
     sets = realtime_sets(rate_hz, ["S1", "S2"])
     with LiveNetwork(scen, work / f"rate-{rate_hz:g}", sets, realtime=True) as live:
         live.start()
-        with live.session() as z:
-            live.wait_until(z, "coordinator", lambda st: st["seq"] > 0, 120)
+        try:
+            with live.session() as z:
+                live.wait_until(z, "coordinator", lambda st: st["seq"] > 0, 120)
+        except RuntimeError:  # the rig ended first (it diverged within moments): its result says so
+            pass
         c0 = {n: cpu_s(p.pid) for n, p in live.by_name.items()}
         t0 = time.perf_counter()
+        c1, t1 = dict(c0), t0
         rig_p = live.by_name["rig"]
         while rig_p.poll() is None:  # the others' CPU just before the rig ends
             c1 = {n: cpu_s(p.pid) for n, p in live.by_name.items() if n != "rig"}
