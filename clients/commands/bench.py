@@ -137,7 +137,7 @@ def _network_live(args: argparse.Namespace) -> dict:
 
     rates = [float(r) for r in (args.rates or "1000,1500,2000,3000").split(",")]
     return bench_network_live(args.realtime, rates, args.seconds or 2.0,
-                              progress=lambda m: print(f"  {m}"[:400], file=sys.stderr, flush=True))
+                              progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
 
 
 class Bench(NamedTuple):

@@ -149,3 +149,25 @@ def test_the_sources_fall_back_without_the_coordinator_and_it_resumes(tmp_path, 
     import json
 
     assert all(json.loads(p.read_text())["network"]["fallback_ticks"] > 0 for p in fallback)
+
+
+def test_demo_network_reports_each_check_live_and_from_its_logs(tmp_path):
+    """energyctl demo --network on a shortened demo: every check printed with its live value and the value recomputed
+    from the logs (the same), lockstep equal to energyctl sim, and the exit code saying whether every check held."""
+    import subprocess
+    import sys
+
+    scen = shortened(tmp_path, DEMO, duration_s=0.4, step_s=0.1, events=[0.2, 0.3])
+    expected = acceptance_checks(run_network(load_network(scen)))
+    p = subprocess.run([sys.executable, "-m", "clients.cli", "demo", "--network", scen, "--logs", str(tmp_path / "l")],
+                       capture_output=True, text=True, timeout=300)
+    out = p.stdout
+    assert "the checks recomputed from the rig's log agree with the live run's" in out, out + p.stderr
+    assert "lockstep over Zenoh equals energyctl sim of the same scenario" in out
+    rows = [ln for ln in out.splitlines() if ln.rstrip().endswith((" ok", "FAIL"))]
+    assert len(rows) == len(expected)
+    for ln, ch in zip(rows, expected, strict=True):
+        assert ln.startswith(ch["check"]) and ln.rstrip().endswith("ok" if ch["ok"] else "FAIL"), (ln, ch)
+    assert p.returncode == (0 if all(ch["ok"] for ch in expected) else 1)
+    logs = list((tmp_path / "l").glob("network-demo-*/logs/*.mcap"))
+    assert {f.name.split("-")[0] for f in logs} >= {"rig.mcap", "coordinator.mcap", "S1", "S2", "S3"}
