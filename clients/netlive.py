@@ -101,7 +101,8 @@ class LiveNetwork:
             p.wait(timeout_s)
         except Exception as e:  # noqa: BLE001 - TimeoutExpired: say what the processes said
             raise RuntimeError(f"the rig did not finish within {timeout_s:g} s; {self.tails()}") from e
-        text = (self.workdir / "rig.out").read_text()
+        n = self.restarts.get("rig", 1) - 1
+        text = (self.workdir / ("rig.out" if n == 0 else f"rig.{n}.out")).read_text()
         lines = [ln for ln in text.splitlines() if ln.startswith("{")]
         if p.returncode != 0 or not lines:
             raise RuntimeError(f"the rig failed (exit {p.returncode}); {self.tails()}")

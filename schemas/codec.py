@@ -159,10 +159,11 @@ class GridCodec:
         vals = struct.unpack_from(f"<{n}d", payload, h)
         if not isfinite(t):
             raise DecodeError(self.name, "t", f"not finite ({t!r})")
-        if not isfinite(sum(vals)):
+        if not isfinite(sum(vals)):  # (finite values can overflow the sum: then every one is looked at, and pass)
             names = ["v"] * ns + ["i_out"] * ns + ["connected"] * ns + ["bus_v"] * nb + ["load_P"] * nl
-            k = next(k for k, x in enumerate(vals) if not isfinite(x))
-            raise DecodeError(self.name, names[k], f"not finite ({vals[k]!r})")
+            for k, x in enumerate(vals):
+                if not isfinite(x):
+                    raise DecodeError(self.name, names[k], f"not finite ({x!r})")
         v, i_out = list(vals[:ns]), list(vals[ns:2 * ns])
         connected = [x != 0.0 for x in vals[2 * ns:3 * ns]]
         return seq, t, v, i_out, connected, list(vals[3 * ns:3 * ns + nb]), list(vals[3 * ns + nb:])

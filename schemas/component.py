@@ -187,6 +187,13 @@ class NetworkRole(Strict):
                                   "tripped); none: it never asks")
     connect_retry_s: Annotated[float, Field(gt=0)] = Field(default=0.5, description="sample time between two "
                                                                                     "connect requests, s")
+    v_ref_min_V: Annotated[float, Field(gt=0)] | None = Field(default=None, description="an allocation whose v_ref "
+                                                                                      "is below this is refused "
+                                                                                      "(counted), V")
+    v_ref_max_V: Annotated[float, Field(gt=0)] | None = Field(default=None, description="an allocation whose v_ref "
+                                                                                      "is above this is refused, V")
+    P_max_W: Annotated[float, Field(gt=0)] = Field(default=1e6, description="an allocation whose |P^{r,in}| is above "
+                                                                            "this is refused (counted), W")
 
 
 class ComponentConfig(Named):

@@ -70,7 +70,11 @@ def source_component(net: NetworkScenario, source: str, *, prefix: str = "energy
     if connect_at_s is None:
         connect_at_s = next((e.t_s for e in net.events if e.kind == "connect" and e.target == source), None)
     lines = [name for name, ln in net.lines.items() if source in (ln.a, ln.b)]
+    off = net.layer.v_ref_max_offset_V
     role = NetworkRole(network=net.name, coordinator=coordinator, lines=lines, idle_power_W=net.layer.idle_power_W,
+                       v_ref_min_V=max(1e-3, src.controller.v_ref_V - off), v_ref_max_V=src.controller.v_ref_V + off,
+                       # the most its measurements can show: the current bound at the voltage bound
+                       P_max_W=ComponentConfig.model_fields["meas_i_max_A"].default * 2.5 * net.nominal_v_V,
                        idle_tau_s=net.layer.idle_tau_s, open_idle=net.layer.open_idle,
                        extrapolate_s=net.layer.extrapolate_s, connect_at_s=connect_at_s)
     v_nom = net.nominal_v_V

@@ -26,6 +26,7 @@ import json
 import sys
 import threading
 from collections import deque
+from math import isfinite
 from queue import Empty, Queue
 
 import zenoh
@@ -38,6 +39,10 @@ from service.daemon.bus import key, open_session, publisher, queued, request
 from service.layer import InterconnectionLayer
 from service.plant.network import NetworkPlant
 
+MAX_REQUEST_BYTES = 64 * 1024  # a connect request larger than this is refused unread
+I_MAX_A = 10_000.0  # a grid sample's current beyond this (A) is refused, named
+P_MAX_W = 10_000_000.0  # a load's power beyond this (W) is refused, named
+
 
 class Coordinator:
     """See the module docstring. ``open()``, then ``run(stop)`` on a thread, then ``close()``."""
@@ -46,6 +51,9 @@ class Coordinator:
         if net.layer.v_ref_mode == "per-source":
             raise ValueError("layer.v_ref_mode: 'per-source' needs each source's mode every sample; the live "
                              "coordinator supports 'common'")
+        if any(ln.delay_s or ln.loss or ln.silent_from_s is not None for ln in net.links.values()):
+            raise ValueError("links: delay, loss and silence of the interaction messages are an offline model; live, "
+                             "the network is the link (remove the links table)")
         self.cfg, self.net, self.impl = cfg, net, impl
         self.layer = InterconnectionLayer(net, NetworkPlant(net, impl))  # the plant only for its loads' profiles
         self.names = list(net.sources)
@@ -63,7 +71,12 @@ class Coordinator:
                          "accepted": 0, "refused": 0, "trips": 0, "restarts": 0}
         self.last_reject = ""
         self.resumed: dict[str, float] = {}
+        self.sizes = (self.ns, len(net.buses), len(net.loads))
+        self._behind = 0  # grid samples in a row not after the newest one taken
+        self._tripping: set[str] = set()  # sources whose trip request is under way
+        self.v_nom = net.nominal_v_V
         self._connects: Queue = Queue()
+        self._lock = threading.Lock()
         self._stop = threading.Event()
         self.session = None
         self.recorder = None
@@ -106,13 +119,28 @@ class Coordinator:
         rec.wait_ready()
         return rec
 
+    def _implausible(self, v, i_out, bus_v, load_P) -> str:
+        """What in a grid sample no network of this scenario can show (a field named), or ''."""
+        hi = 2.5 * self.v_nom
+        for name, xs, ok in (("v", v, lambda x: 0.0 <= x <= hi), ("bus_v", bus_v, lambda x: 0.0 <= x <= hi),
+                             ("i_out", i_out, lambda x: abs(x) <= I_MAX_A), ("load_P", load_P,
+                                                                             lambda x: abs(x) <= P_MAX_W)):
+            for j, x in enumerate(xs):
+                if not ok(x):
+                    return f"grid.{name}[{j}]: {x!r} out of range"
+        return ""
+
     def _resume(self) -> None:
         """Each source's v_ref as its daemon reports it (a coordinator that comes back resumes from them)."""
         c = self.cfg
         for j, name in enumerate(self.names):
             ok, reply = request(self.session, key(c.prefix, name, "config"), None, c.resume_timeout_s)
-            if ok and isinstance(reply.get("controller"), dict) and "v_ref_V" in reply["controller"]:
-                self.layer.v_ref[j] = float(reply["controller"]["v_ref_V"])
+            v_ref = reply.get("controller", {}).get("v_ref_V") if ok and isinstance(reply.get("controller"),
+                                                                                       dict) else None
+            lo = self.layer.v_ref0[j] - self.net.layer.v_ref_max_offset_V
+            hi = self.layer.v_ref0[j] + self.net.layer.v_ref_max_offset_V
+            if isinstance(v_ref, int | float) and isfinite(v_ref):
+                self.layer.v_ref[j] = min(max(float(v_ref), lo), hi)
                 self.resumed[name] = self.layer.v_ref[j]
         if self.resumed:
             self._event(0.0, 0, "resume", {"v_ref_V": self.resumed})
@@ -138,14 +166,19 @@ class Coordinator:
     def run(self, max_samples: int | None = None) -> None:
         q, stop = self.grid_q, self._stop
         while not stop.is_set():
-            self._poll_alive()
-            self._take_connects()
             try:
-                _, payload = q.get(timeout=0.005)
-            except Empty:
-                continue
-            self.grid(payload)
-            self._take_connects()
+                self._poll_alive()
+                self._take_connects()
+                try:
+                    _, payload = q.get(timeout=0.005)
+                except Empty:
+                    continue
+                self.grid(payload)
+                self._take_connects()
+            except Exception as e:  # noqa: BLE001 - one bad sample or request must not end the layer
+                self._reject(f"internal: {type(e).__name__}: {e}")
+                print(f"energyctl coordinator: {type(e).__name__}: {e} (counted; going on)", file=sys.stderr,
+                      flush=True)
             if max_samples is not None and self.counters["grid_samples"] >= max_samples:
                 break
 
@@ -156,17 +189,31 @@ class Coordinator:
         except DecodeError as e:
             self._reject(f"grid.{e.field}: invalid ({e.reason})")
             return
-        if len(v) != self.ns:
-            self._reject(f"grid.v: {len(v)} sources, the scenario has {self.ns}")
+        sizes = (len(v), len(bus_v), len(load_P))
+        if sizes != self.sizes:
+            self._reject(f"grid: {sizes[0]} sources, {sizes[1]} buses, {sizes[2]} loads; the scenario has "
+                         f"{self.sizes[0]}, {self.sizes[1]}, {self.sizes[2]}")
+            return
+        T = self.layer.T
+        if abs(t - seq * T) > 0.5 * T:
+            self._reject(f"grid.t: {t!r} s is not seq x T ({seq} x {T:g} s)")
+            return
+        bad = self._implausible(v, i_out, bus_v, load_P)
+        if bad:
+            self._reject(bad)
             return
         if seq <= self.seq:
-            if seq != 0:
+            self._behind += 1
+            if seq != 0 and self._behind < self.layer.per_window:
                 self._reject(f"grid.seq: {seq} not after {self.seq}")
                 return
-            self.counters["restarts"] += 1  # the rig restarted: a new run
+            # the rig restarted (seq 0), or a window of samples all behind one that came from nowhere: a new run
+            self.counters["restarts"] += 1
             self.layer = InterconnectionLayer(self.net, self.layer.loads)
+            self.seq = -1
         elif self.seq >= 0 and seq > self.seq + 1:
             self.counters["missing_samples"] += seq - self.seq - 1
+        self._behind = 0
         layer, ns = self.layer, self.ns
         topology = connected != self.connected or self.seq < 0
         self.seq, self.t, self.connected = seq, t, connected
@@ -176,6 +223,14 @@ class Coordinator:
             self.zin = layer.ranges(self.window, connected)
         P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(ns)]
         want, rate = layer.allocate(seq, P, connected)
+        if not all(map(isfinite, want)) or not all(map(isfinite, rate)):  # a backstop: never send these
+            layer.want_rate[:] = [0.0] * ns
+            layer.want_prev[:] = [0.0] * ns
+            self._reject("grid: the allocation came out not finite")
+            return
+        for j, name in enumerate(self.names):  # a closed breaker whose controller is gone: trip it (again)
+            if connected[j] and self.alive[name] is False and self.cfg.trip_on_loss and name not in self._tripping:
+                self._trip(name)
         self.want = want
         w, zin, v_ref = self.window, self.zin, layer.v_ref
         for j in range(ns):
@@ -232,6 +287,11 @@ class Coordinator:
             reply = {"accepted": True, "reason": "already connected", "window": window}
             self._answer(query, True, reply)
             return
+        if self.alive.get(name) is not True:
+            self.counters["refused"] += 1
+            self._answer(query, True, {"source": name, "accepted": False, "window": window,
+                                       "reason": f"{name}: its controller's liveliness token is not up"})
+            return
         # the v_ref the layer holds for it (it may have moved it at the end of sample k - 1)
         controller = controller.model_copy(update={"v_ref_V": self.layer.v_ref[s]})
         f = self.layer.connect_check(s, controller, window, self.connected, self.d, self.impl)
@@ -266,10 +326,14 @@ class Coordinator:
         c = self.cfg
         self.counters["trips"] += 1
         t, seq = self.t, self.seq
+        self._tripping.add(name)
 
         def ask() -> None:
-            ok, r = request(self.session, key(c.prefix, c.rig, "breaker"),
-                            {"target": name, "closed": False, "at_seq": None, "by": c.id}, 5.0)
+            try:
+                ok, r = request(self.session, key(c.prefix, c.rig, "breaker"),
+                                {"target": name, "closed": False, "at_seq": None, "by": c.id}, 5.0)
+            finally:
+                self._tripping.discard(name)  # asked again at the next sample that still shows it closed
             item = {"t": t, "seq": seq, "source": name, "reason": "liveliness token lost", "rig_ok": ok,
                     "applied_at_seq": r.get("at_seq") if ok else None, "error": "" if ok else r.get("error", "")}
             self.trips.append(item)
@@ -289,17 +353,25 @@ class Coordinator:
                 query = q.recv()
             except Exception:  # noqa: BLE001 - channel closed at shutdown
                 return
-            if leaf == "connect":
-                try:
-                    body = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
+            try:
+                if leaf == "connect":
+                    raw = query.payload.to_bytes() if query.payload is not None else b"{}"
+                    if len(raw) > MAX_REQUEST_BYTES:
+                        raise ValueError(f"{len(raw)} bytes, more than {MAX_REQUEST_BYTES}")
+                    body = json.loads(raw)
                     if not isinstance(body, dict):
                         raise ValueError("expected a JSON object {\"source\", \"controller\", \"at_seq\"}")
-                except ValueError as e:
-                    self._answer(query, False, {"error": f"connect: {e}"})
+                    at = body.get("at_seq")
+                    if at is not None and (type(at) is not int or at < 0):
+                        raise ValueError(f"at_seq: expected a sample number or null, got {at!r}")
+                    if at is not None and at > self.seq + 2 * self.layer.per_window + 1 and self.seq >= 0:
+                        raise ValueError(f"at_seq: {at} is more than two windows ahead of sample {self.seq}")
+                    self._connects.put((query, body))  # the loop thread answers (and drops) it
                     continue
-                self._connects.put((query, body))  # the loop thread answers (and drops) it
-                continue
-            self._answer(query, True, self.status(), own)
+                self._answer(query, True, self.status(), own)
+            except Exception as e:  # noqa: BLE001 - RecursionError from deep JSON too: answered, counted
+                self._reject(f"{leaf}: {type(e).__name__}: {e}"[:300])
+                self._answer(query, False, {"error": f"{leaf}: {e}"[:300]})
 
     def _answer(self, query, ok: bool, body: dict, own: str | None = None) -> None:
         try:
@@ -313,15 +385,15 @@ class Coordinator:
             query.drop()
 
     def status(self) -> dict:
-        layer, net = self.layer, self.net
-        weight = sum(sh for sh, c in zip(layer.shares, self.connected, strict=True) if c) or 1.0
+        layer, net, zin, connected = self.layer, self.net, list(self.zin), list(self.connected)
+        weight = sum(sh for sh, c in zip(layer.shares, connected, strict=True) if c) or 1.0
         return {
             "id": self.cfg.id, "network": net.name, "seq": self.seq, "t": self.t, "window": self.window,
             "window_s": net.layer.window_s, "mode": net.layer.mode, "loss_frac": layer.loss_frac,
-            "sources": {name: {"share": layer.shares[j], "share_now": layer.shares[j] / weight if self.connected[j]
-                               else 0.0, "connected": self.connected[j], "alive": self.alive[name],
+            "sources": {name: {"share": layer.shares[j], "share_now": layer.shares[j] / weight if connected[j]
+                               else 0.0, "connected": connected[j], "alive": self.alive[name],
                                "P_r_in": self.want[j], "v_ref_V": layer.v_ref[j],
-                               "Z_in": list(self.zin[j]) if self.zin[j] is not None else None}
+                               "Z_in": list(zin[j]) if zin[j] is not None else None}
                         for j, name in enumerate(self.names)},
             "verdicts": list(self.verdicts), "trips": list(self.trips), "resumed_v_ref": self.resumed,
             "counters": dict(self.counters), "last_reject": self.last_reject,
@@ -331,8 +403,9 @@ class Coordinator:
 
     # ---------------------------------------------------------------- helpers
     def _reject(self, text: str) -> None:
-        self.counters["rejected"] += 1
-        self.last_reject = text
+        with self._lock:  # the loop thread and the query threads
+            self.counters["rejected"] += 1
+            self.last_reject = text
 
     def _event(self, t: float, seq: int, kind: str, detail: dict) -> None:
         if self.recorder is not None:
@@ -351,8 +424,10 @@ def run_coordinator(cfg: CoordinatorConfig, net: NetworkScenario, stop: threadin
           + (f", resumed v_ref from {sorted(co.resumed)}" if co.resumed else ""), file=log, flush=True)
     while not stop.is_set() and loop.is_alive():
         stop.wait(0.05)
+    died = not stop.is_set()  # the loop ended by itself: a failure, whatever the status says
     co.stop()
-    loop.join(timeout=1.0)
+    loop.join(timeout=6.0)  # a plug-in check under way asks the rig with a 5 s timeout
     status = co.status()
+    status["loop_ended_by_itself"] = died
     co.close()
     return status

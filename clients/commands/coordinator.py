@@ -58,4 +58,4 @@ def run(args: argparse.Namespace) -> int:
         print(f"energyctl coordinator: {e}", file=sys.stderr)
         return 2
     print(json.dumps(status), flush=True)
-    return 0
+    return 1 if status.get("loop_ended_by_itself") else 0

@@ -186,7 +186,8 @@ class NetworkRig:
         try:
             c = CMD.decode(payload)
         except DecodeError:
-            self.counters["rejected"] += 1
+            with self.lock:
+                self.counters["rejected"] += 1
             return None
         self.counters["commands"] += 1
         self.answered[name] = max(self.answered[name], c[0])
@@ -248,24 +249,31 @@ class NetworkRig:
             except Exception:  # noqa: BLE001 - closed at shutdown
                 return
             try:
-                body = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
+                raw = query.payload.to_bytes() if query.payload is not None else b"{}"
+                if len(raw) > 64 * 1024:
+                    raise ValueError(f"{len(raw)} bytes: too long")
+                body = json.loads(raw)
+                if not isinstance(body, dict):
+                    raise ValueError("expected a JSON object {\"target\", \"closed\", \"at_seq\"}")
                 target, closed, at = body.get("target"), body.get("closed"), body.get("at_seq")
-                if target not in self.net.sources and target not in self.net.lines:
+                if not isinstance(target, str) or (target not in self.net.sources and target not in self.net.lines):
                     raise ValueError(f"target: {target!r} is not a source or a line of {self.net.name!r}")
                 if not isinstance(closed, bool):
                     raise ValueError("closed: expected true or false")
-                if at is not None and not isinstance(at, int):
+                if at is not None and (type(at) is not int or at < 0):
                     raise ValueError("at_seq: expected a sample number or null (the next sample)")
                 with self.lock:
                     self.pending.append((at, target, closed, str(body.get("by", ""))))
                     self.counters["breaker_commands"] += 1
                 query.reply(key(self.cfg.prefix, self.cfg.id, "breaker"),
                             json.dumps({"target": target, "closed": closed, "at_seq": at}))
-            except (ValueError, AttributeError) as e:
-                self.counters["rejected"] += 1
-                query.reply_err(json.dumps({"error": f"breaker: {e}"}))
-            except Exception:  # noqa: BLE001 - the asker went away
-                pass
+            except Exception as e:  # noqa: BLE001 - any bad query (deep JSON too): answered with why, counted
+                with self.lock:
+                    self.counters["rejected"] += 1
+                try:
+                    query.reply_err(json.dumps({"error": f"breaker: {type(e).__name__}: {e}"[:300]}))
+                except Exception:  # noqa: BLE001 - the asker went away
+                    pass
             finally:
                 query.drop()
 

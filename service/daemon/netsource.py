@@ -55,7 +55,8 @@ class NetworkSourceDaemon(Daemon):
         self.connected: bool | None = None  # its breaker as the newest allocation reported it (None: none yet)
         self.v_ref_moves = 0
         self.fallback_ticks = 0
-        self._range_window = -1
+        self._range: tuple | None = None  # (window, Z^{r,in}) the feasibility monitor holds
+        self._seen_restarts = 0
         k_connect = None if self.role.connect_at_s is None else round(self.role.connect_at_s / self.period_s)
         self._connect_seq = k_connect  # the sample from which the breaker is to close
         self._next_request_t = -1.0  # sample time of the next connect request allowed
@@ -97,6 +98,7 @@ class NetworkSourceDaemon(Daemon):
         if m is not None:
             try:
                 v = ALLOC.decode(m.payload.to_bytes())
+                self._check_alloc(v)
             except DecodeError as e:
                 self._reject(f"alloc.{e.field}: invalid", now, e.reason)
             else:
@@ -111,6 +113,25 @@ class NetworkSourceDaemon(Daemon):
             if v is not None and self.recorder is not None:
                 self.recorder.offer(nb.topic, v[1], v)
 
+    def _check_alloc(self, v: tuple) -> None:
+        """Refuse (DecodeError naming the field) an allocation that no layer of this network sends: a v_ref outside
+        the layer's bounds, a power beyond the source's."""
+        r = self.role
+        if (r.v_ref_min_V is not None and v[4] < r.v_ref_min_V) or (r.v_ref_max_V is not None and v[4] > r.v_ref_max_V):
+            raise DecodeError("Allocation", "v_ref_V", f"{v[4]:g} V outside [{r.v_ref_min_V}, {r.v_ref_max_V}]")
+        if abs(v[2]) > r.P_max_W:
+            raise DecodeError("Allocation", "P_r_in", f"|{v[2]:g}| W above {r.P_max_W:g}")
+
+    def _forget_run(self) -> None:
+        """The rig restarted: what this daemon knew of its run (allocation, breaker, handshake) is not this run's."""
+        a = self.alloc
+        a.seq, a.count, a.t, a.P, a.P_dot = -1, 0, 0.0, 0.0, 0.0
+        self.alloc_vals = None
+        self.connected = None
+        self._next_request_t = -1.0
+        self._range = None
+        self._seen_restarts = self.restarts
+
     # ---------------------------------------------------------------- the tick
     def _tick(self, payload: bytes, now: int) -> None:
         self.put_ns = self.control_ns = 0
@@ -124,6 +145,8 @@ class NetworkSourceDaemon(Daemon):
             self.state = "active"
         if self._last_seq >= 0 and seq > self._last_seq + 1:
             self.stats.missing_samples += seq - self._last_seq - 1
+        if self.restarts != self._seen_restarts:
+            self._forget_run()
         t_prev = self.last_sample[1] if self.last_sample is not None else t
         self._last_seq = seq
         self.last_sample = v
@@ -136,10 +159,12 @@ class NetworkSourceDaemon(Daemon):
                 if rec is not None:
                     rec.offer(self.t_ev, t_prev, (t_prev, seq, "config", json.dumps({"v_ref_V": new.v_ref_V})))
             self.connected = bool(av[5])
-            if av[7] and av[6] != self._range_window:
-                self._range_window = av[6]
+            if av[7] and (av[6], av[8:12]) != self._range:  # a new window's range, or this one's after an event
+                self._range = (av[6], av[8:12])
                 self.feas.set_range(av[6], av[8:12])
-        fresh = a.count > 0 and t - a.t <= role.stale_s
+        age = t - a.t
+        # (one from ahead of this sample by more than stale_s is not this run's: a rig restarted, a stray sender)
+        fresh = a.count > 0 and -role.stale_s <= age <= role.stale_s
         P_in = outgoing_power_at(t, a.t, a.P, a.P_dot, role.stale_s, role.extrapolate_s) if fresh else a.P
         connected = True if self.connected is None else self.connected  # unknown: its own terminal decides
         limited = False
@@ -227,7 +252,7 @@ class NetworkSourceDaemon(Daemon):
                 "from": self.role.coordinator, "seq": av[0], "t": av[1], "P_r_in": av[2], "P_r_in_dot": av[3],
                 "v_ref_V": av[4], "window": av[6], "Z_in": list(av[8:12]) if av[7] else None,
                 "age_s": None if last_t is None else last_t - av[1],
-                "stale": last_t is None or last_t - av[1] > self.role.stale_s,
+                "stale": last_t is None or abs(last_t - av[1]) > self.role.stale_s,
                 "coordinator_alive": a.alive, "received_ago_s": (now - a.rx_ns) / 1e9},
             "P_r_in_used": self.ctl.P_in_used, "v_ref_V": self.ctl.v_ref_V, "v_ref_moves": self.v_ref_moves,
             "fallback_ticks": self.fallback_ticks, "mode_switches": self.ctl.switches,

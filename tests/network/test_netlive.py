@@ -171,3 +171,56 @@ def test_demo_network_reports_each_check_live_and_from_its_logs(tmp_path):
     assert p.returncode == (0 if all(ch["ok"] for ch in expected) else 1)
     logs = list((tmp_path / "l").glob("network-demo-*/logs/*.mcap"))
     assert {f.name.split("-")[0] for f in logs} >= {"rig.mcap", "coordinator.mcap", "S1", "S2", "S3"}
+
+
+def test_bad_input_is_refused_by_name_and_the_network_goes_on(tmp_path, trip_scenario):  # noqa: PLR0915
+    """Bad connect and breaker queries, a forged grid sample from the future and an allocation with an impossible
+    v_ref: each refused with the field named and counted; no loop ends, nothing reaches a converter, and a source
+    whose daemon is gone is refused a connect."""
+    import json as _json
+
+    from schemas.codec import ALLOC, GRID
+    from service.daemon.bus import request
+
+    with LiveNetwork(trip_scenario, tmp_path / "run", sets=["timing.duration_s=1.0"]) as live:
+        live.start()
+        with live.session() as z:
+            st = live.wait_until(z, "coordinator", lambda st: st["t"] >= 0.05, 60)
+            ask = lambda k, body, raw=None: request(z, f"energyctl/{k}", body, 5.0)  # noqa: E731
+            ok, r = ask("coordinator/connect", {"source": "S1", "at_seq": "x"})
+            assert not ok and "at_seq" in r["error"]
+            ok, r = request(z, "energyctl/coordinator/connect", None, 5.0)  # no payload: no source named
+            assert not ok and "source" in r["error"]
+            z.get("energyctl/coordinator/connect", payload="[" * 100_000, timeout=5.0)  # deep JSON: answered
+            ok, r = ask("rig/breaker", {"target": ["S1"], "closed": False})
+            assert not ok and "target" in r["error"]
+            ok, r = ask("rig/breaker", {"target": "S1", "closed": "yes"})
+            assert not ok and "closed" in r["error"]
+            # a grid sample from far ahead, and one whose t is not seq x T: refused; the allocations go on
+            seq = st["seq"]
+            pub = z.declare_publisher("energyctl/rig/grid")
+            pub.put(GRID.encode(seq + 100_000, (seq + 100_000) * 1e-4, [80.0, 80.0], [1.0, 1.0], [True, True], [80.0],
+                                [100.0]))
+            pub.put(GRID.encode(seq + 5, 123.0, [80.0, 80.0], [1.0, 1.0], [True, True], [80.0], [100.0]))
+            # an allocation with v_ref 5 V to S2 (sent until one lands between two of the coordinator's): refused by
+            # name, counted
+            bad = z.declare_publisher("energyctl/S2/alloc")
+
+            def refused(st) -> bool:
+                bad.put(ALLOC.encode(seq, seq * 1e-4, -500.0, 0.0, 5.0, True, 0, False, 0.0, 0.0, 0.0, 0.0))
+                return any(k.startswith("alloc.v_ref_V") for k in st["rejected"])
+
+            s2 = live.wait_until(z, "S2", refused, 30)
+            assert s2["network"]["v_ref_V"] > 70.0
+            co = live.wait_until(z, "coordinator", lambda st: st["counters"]["rejected"] >= 6, 30)
+            assert co["t"] > st["t"]  # still allocating
+            # S2's daemon gone: tripped, and a connect in its name is refused
+            live.kill("S2", signal.SIGKILL)
+            live.wait_until(z, "coordinator", lambda st: not st["sources"]["S2"]["connected"], 30)
+            ok, r = ask("coordinator/connect", {"source": "S2", "controller": {"K_per_s": 1000.0}})
+            assert ok and r["accepted"] is False and "liveliness" in r["reason"]
+        res = live.wait_rig(120)
+    assert not res["metrics"]["diverged"]
+    out = _json.loads((tmp_path / "run" / "coordinator.out").read_text().splitlines()[-1]) if (
+        tmp_path / "run" / "coordinator.out").read_text().strip() else None
+    assert out is None or not out.get("loop_ended_by_itself")
