@@ -73,7 +73,9 @@ class Coordinator:
         self.resumed: dict[str, float] = {}
         self.sizes = (self.ns, len(net.buses), len(net.loads))
         self._behind = 0  # grid samples in a row not after the newest one taken
-        self._tripping: set[str] = set()  # sources whose trip request is under way
+        self._tripping: set[str] = set()  # sources asked to trip, until a sample shows their breaker open
+        self.rig_alive: bool | None = None  # the rig's token: gone means this coordinator may be the one cut off
+        self._alive_checked: Queue = Queue()
         self.v_nom = net.nominal_v_V
         self._connects: Queue = Queue()
         self._lock = threading.Lock()
@@ -229,7 +231,9 @@ class Coordinator:
             self._reject("grid: the allocation came out not finite")
             return
         for j, name in enumerate(self.names):  # a closed breaker whose controller is gone: trip it (again)
-            if connected[j] and self.alive[name] is False and self.cfg.trip_on_loss and name not in self._tripping:
+            if not connected[j]:
+                self._tripping.discard(name)
+            elif self.alive[name] is False and self.cfg.trip_on_loss and name not in self._tripping:
                 self._trip(name)
         self.want = want
         w, zin, v_ref = self.window, self.zin, layer.v_ref
@@ -310,16 +314,54 @@ class Coordinator:
         self._answer(query, True, reply)
 
     def _poll_alive(self) -> None:
+        """The liveliness tokens. The rig's first: while it is gone this coordinator may itself be cut off (its
+        router restarting, its link down), and a token seen going then says nothing about its source; those
+        become unknown (None), never a trip. When the rig's token is back, one liveliness query says who is up."""
+        events = []
         while (tok := self.alive_sub.try_recv()) is not None:
             parts = str(tok.key_expr).split("/")
-            name = parts[-2] if len(parts) >= 2 else ""
+            events.append((parts[-2] if len(parts) >= 2 else "", tok.kind == zenoh.SampleKind.PUT))
+        for name, up in events:
+            if name == self.cfg.rig:
+                if not up:
+                    for n in self.alive:
+                        self.alive[n] = None
+                elif self.rig_alive is False:
+                    self._recheck_alive()
+                self.rig_alive = up
+        while not self._alive_checked.empty():  # the re-check's answer: who holds a token now
+            up_now = self._alive_checked.get_nowait()
+            for n in self.alive:
+                if self.alive[n] is None:
+                    self.alive[n] = n in up_now
+        for name, up in events:
             if name not in self.alive:
                 continue
-            up = tok.kind == zenoh.SampleKind.PUT
+            if self.rig_alive is False:
+                self.alive[name] = True if up else None
+                continue
             was = self.alive[name]
             self.alive[name] = up
-            if not up and was is not False and self.cfg.trip_on_loss and self.connected[self.names.index(name)]:
+            if not up and was is not False and self.cfg.trip_on_loss and self.connected[self.names.index(name)] \
+                    and name not in self._tripping:
                 self._trip(name)
+
+    def _recheck_alive(self) -> None:
+        """Ask who holds a token (a thread; the answer comes back through a queue to the loop)."""
+        c = self.cfg
+
+        def ask() -> None:
+            up = set()
+            try:
+                for r in self.session.liveliness().get(key(c.prefix, "*", "alive"), timeout=1.0):
+                    if r.ok is not None:
+                        parts = str(r.ok.key_expr).split("/")
+                        up.add(parts[-2] if len(parts) >= 2 else "")
+            except Exception:  # noqa: BLE001 - closing: nothing to report
+                return
+            self._alive_checked.put(up)
+
+        threading.Thread(target=ask, name="recheck-alive", daemon=True).start()
 
     def _trip(self, name: str) -> None:
         """Its daemon is gone: the rig opens its breaker (a thread: the loop keeps allocating meanwhile)."""
@@ -329,11 +371,13 @@ class Coordinator:
         self._tripping.add(name)
 
         def ask() -> None:
+            ok, r = False, {"error": "not asked"}
             try:
                 ok, r = request(self.session, key(c.prefix, c.rig, "breaker"),
                                 {"target": name, "closed": False, "at_seq": None, "by": c.id}, 5.0)
             finally:
-                self._tripping.discard(name)  # asked again at the next sample that still shows it closed
+                if not ok:  # asked again at the next sample that still shows it closed; else when a sample shows it
+                    self._tripping.discard(name)  # open (grid)
             item = {"t": t, "seq": seq, "source": name, "reason": "liveliness token lost", "rig_ok": ok,
                     "applied_at_seq": r.get("at_seq") if ok else None, "error": "" if ok else r.get("error", "")}
             self.trips.append(item)

@@ -36,6 +36,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     net.add_argument("--out", metavar="FILE.mcap", help="the rig's log (the network's true state and its events)")
     net.add_argument("--id", default="rig", help="the rig's id (default: %(default)s)")
     net.add_argument("--prefix", default="energyctl", help="key-expression prefix (default: %(default)s)")
+    net.add_argument("--interaction-rate", type=float, default=1000.0, metavar="HZ",
+                     help="how often the lines' and loads' interaction variables go out (for the sources' status and "
+                          "logs; default %(default)s); lower it across hosts, where they are most of the traffic")
     net.add_argument("--wait-for", action="append", metavar="ID",
                      help="ids to wait for besides the sources (default: coordinator)")
     add_core(net)
@@ -85,7 +88,8 @@ def run_network_rig(args: argparse.Namespace) -> int:
 
     net = load_network(args.config, args.set)
     cfg = NetworkRigConfig(id=args.id, prefix=args.prefix, zenoh=zenoh_from_args(args), pacing=args.pacing,
-                           out=args.out, wait_for=args.wait_for or ["coordinator"])
+                           out=args.out, wait_for=args.wait_for or ["coordinator"],
+                           interaction_rate_hz=args.interaction_rate)
     stop = start_process(cfg, "plant")
     try:
         res = NetworkRig(cfg, net, stop, args.core).run()
