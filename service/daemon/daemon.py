@@ -548,17 +548,21 @@ class Daemon(DaemonQueries):
             self.late_ticks += 1
         if P_out is not None:
             self._feasibility(t, P_out, Qdot_out)
-        # the rarer work on different ticks (each costs a few us; on one tick together they made its 99th percentile):
-        # interaction every _z_every ticks from 0, the estimator record every log_est_every from half of that, the
-        # loop record every 1000 from 1
+        self._rarer_work(t, stepped and P_out is not None)
+
+    def _rarer_work(self, t: float, estimated: bool) -> None:
+        """The rarer work, on different ticks (each costs a few us; on one tick together they made its 99th
+        percentile): interaction every _z_every ticks from 0, the estimator record (when this tick stepped with an
+        estimate: ``estimated``) every log_est_every from half of that, the loop record every 1000 from 1."""
         n = self.stats.ticks
+        rec = self.recorder
         if rec is not None:
             if n % 1000 == 1:
                 st = self.stats
                 rec.offer(self.t_loop, t, (t, n, st.overruns, st.no_new_sample, st.missing_samples,
                                            st.window_exec_max, st.window_period_max))
                 st.window_exec_max = st.window_period_max = 0
-            if stepped and n % self._est_every == self._est_phase and P_out is not None:
+            if estimated and n % self._est_every == self._est_phase:
                 rec.offer(self.t_est, t, (t, *self.core.est_record()))
         if n % self._z_every == 0 and self.core.out.est is not None:
             self._publish_z(t)

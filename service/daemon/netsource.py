@@ -194,17 +194,7 @@ class NetworkSourceDaemon(Daemon):
         est = self.core.out.est
         if stepped and ctl.mode == ACTIVE and est is not None and t >= 5.0 * self.core.cfg.deriv_tau_s:
             self.feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
-        n = self.stats.ticks
-        if rec is not None:
-            if n % 1000 == 1:
-                st = self.stats
-                rec.offer(self.t_loop, t, (t, n, st.overruns, st.no_new_sample, st.missing_samples,
-                                           st.window_exec_max, st.window_period_max))
-                st.window_exec_max = st.window_period_max = 0
-            if stepped and n % self._est_every == self._est_phase and est is not None:
-                rec.offer(self.t_est, t, (t, *self.core.est_record()))
-        if n % self._z_every == 0 and est is not None:
-            self._publish_z(t)
+        self._rarer_work(t, stepped and est is not None)
 
     # ---------------------------------------------------------------- the plug-in handshake
     def _maybe_connect(self, seq: int, t: float) -> None:
