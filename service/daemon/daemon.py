@@ -171,6 +171,16 @@ class Daemon(DaemonQueries):
                             rotate_s=c.log_rotate_s, writer_cpus=c.log_writer_cpus,
                             groups=[(self.t_meas, self.t_zin, self.t_cmd)])  # offer_group(0, ...) in _tick
 
+    def _take_sample(self, v: tuple) -> None:
+        """v is the next sample stepped on: back to active from degraded, the samples skipped before it counted."""
+        seq = v[0]
+        if self.state == "degraded":
+            self.state = "active"
+        if self._last_seq >= 0 and seq > self._last_seq + 1:
+            self.stats.missing_samples += seq - self._last_seq - 1
+        self._last_seq = seq
+        self.last_sample = v
+
     def _extra_topics(self) -> dict:
         """Further recorded topics of a kind of daemon: topic -> (schema name, codec)."""
         return {}
@@ -495,12 +505,7 @@ class Daemon(DaemonQueries):
             return
         t_control = _now_ns()
         seq, t = v[0], v[1]
-        if self.state == "degraded":
-            self.state = "active"
-        if self._last_seq >= 0 and seq > self._last_seq + 1:
-            self.stats.missing_samples += seq - self._last_seq - 1
-        self._last_seq = seq
-        self.last_sample = v
+        self._take_sample(v)
         stale_s, horizon_s = self.cfg.neighbour_stale_s, self.cfg.neighbour_extrapolate_s
         stale_ns = int(stale_s * 1e9)
         P_in = P_in_dot = 0.0

@@ -141,15 +141,10 @@ class NetworkSourceDaemon(Daemon):
             return
         t_control = _now_ns()
         seq, t = v[0], v[1]
-        if self.state == "degraded":
-            self.state = "active"
-        if self._last_seq >= 0 and seq > self._last_seq + 1:
-            self.stats.missing_samples += seq - self._last_seq - 1
         if self.restarts != self._seen_restarts:
             self._forget_run()
         t_prev = self.last_sample[1] if self.last_sample is not None else t
-        self._last_seq = seq
-        self.last_sample = v
+        self._take_sample(v)
         role, ctl, rec, a = self.role, self.ctl, self.recorder, self.alloc
         av = self.alloc_vals
         if av is not None:
