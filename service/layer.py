@@ -13,8 +13,10 @@ connected; it answers with P^{r,in}_s (W, negative when the source delivers) and
 
 Once per window (``window_s``, a whole number of periods) every source's v_ref moves by ``v_ref_gain`` x (nominal -
 the buses' mean measured voltage over the window), within ``v_ref_max_offset_V`` of its configured value; this
-restores the bus voltage while the terminals move to share the load. Z^{r,in}[k] of each connected source is its
-share of the loads' box over window k (``window_box``), through the paper's incoming range.
+restores the bus voltage while the terminals move to share the load; a disconnected source's v_ref goes to the
+buses' mean instead (``open_v_ref = "bus"``: it waits at the voltage it will close onto). A source that connects
+takes its share over ``plug_in_ramp_s``. Z^{r,in}[k] of each connected source is its share of the loads' box over
+window k (``window_box``), through the paper's incoming range.
 """
 
 from __future__ import annotations
