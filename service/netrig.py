@@ -47,6 +47,9 @@ class NetworkRigModel:
         self.bus_idx = [plant.node_index[b] for b in net.buses]
         self.bus_rng = np.random.default_rng([net.seed, 0xB05])  # the layer's bus measurements: their own noise
         self.r = [0.0] * ns
+        # both ends of every line: (line, node, line index, node index), found once (line_ends runs per sample)
+        self._ends = [(name, node, j, plant.node_index[node]) for j, (name, ln) in enumerate(net.lines.items())
+                      for node in (ln.a, ln.b)]
 
     def begin(self, k: int, kinds=("trip", "close", "connect")) -> list[EventConfig]:
         """Start tick k (t = k T, by index: an event at k T stays on tick k in a long run): the scenario's events due
@@ -118,12 +121,8 @@ class NetworkRigModel:
 
     def line_ends(self) -> list[tuple[str, str, float]]:
         """(line, node, the power the line draws there W) for both ends of every line."""
-        p, names, nodes = self.plant, self.plant.line_names, self.net.nodes()
-        out = []
-        for j, ln in enumerate(self.net.lines.values()):
-            for node in (ln.a, ln.b):
-                out.append((names[j], node, p.line_end_power(j, nodes.index(node))))
-        return out
+        p = self.plant
+        return [(line, node, p.line_end_power(j, n)) for line, node, j, n in self._ends]
 
     def advance(self) -> None:
         self.plant.advance(self.r, self.T, self.n_sub)
