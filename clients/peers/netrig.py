@@ -112,7 +112,7 @@ class NetworkRig:
         spin_ns = int(cfg.realtime_spin_us * 1e3)
         now_ns = time.monotonic_ns
         rows, stop = self._rows, self.stop
-        z_every = max(1, round(net_rate(self.net) / cfg.interaction_rate_hz))
+        z_every = max(1, round(self.net.timing.control_rate_hz / cfg.interaction_rate_hz))
         self.cpu = ProcessCpu().start()
         t_wall0 = time.perf_counter()
         next_ns = now_ns() + period_ns
@@ -326,10 +326,6 @@ class NetworkRig:
             write_rig_log(self.cfg.out, res, self.cfg.prefix, out)
         out["result"] = res
         return out
-
-
-def net_rate(net: NetworkScenario) -> float:
-    return net.timing.control_rate_hz
 
 
 def add_load_events(res: NetworkResult) -> None:
