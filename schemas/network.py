@@ -23,6 +23,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 
 from schemas.scenario import (
     CircuitParams,
+    CommandDisturbances,
     ControllerConfig,
     NonNeg,
     Pos,
@@ -170,7 +171,9 @@ class LayerConfig(Strict):
                                      "the open terminal's L-C resonance (57 Hz) up until it diverged; hold does not")
 
 
-class NetworkTiming(Strict):
+class NetworkTiming(CommandDisturbances):
+    """The network's timing; the command disturbances act on every source's commands, each its own seeded draw."""
+
     control_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = Field(
         default=10_000.0, description="sampling and control rate of every source, Hz")
     plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = Field(default=1e-5, description="integration step, s")

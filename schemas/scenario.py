@@ -109,14 +109,10 @@ class SensorConfig(Strict):
     lsb_i_A: NonNeg = Field(default=0.0, description="quantisation step of measured currents, A; 0: none")
 
 
-class TimingConfig(Strict):
-    control_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = Field(
-        default=10_000.0, description="sampling and control rate, Hz")
-    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = Field(
-        default=1e-5, description="the plant's integration step, s")
-    delay_samples: Annotated[int, Field(ge=0, le=200)] = Field(
-        default=0, description="loop delay: the command answering sample k acts from sample k + this (samples)")
-    duration_s: Annotated[float, Field(gt=0, le=3600)] = Field(default=0.2, description="simulated time, s")
+class CommandDisturbances(Strict):
+    """Seeded disturbances of the commands on their way to the plant (offline and lockstep; a realtime stack has
+    its own): loss, one period of lateness, and outages."""
+
     command_loss: Annotated[float, Field(ge=0, lt=1)] = Field(
         default=0.0, description="probability that a command never reaches the plant, seeded: its predecessor's "
                                  "plan acts in its period (the source holds its voltage if that one was lost too)")
@@ -131,6 +127,16 @@ class TimingConfig(Strict):
         default=[], description="windows (start s, length s) in which no command arrives at the plant: a stall of "
                                 "the transport or of the controller longer than the loop delay, as the realtime "
                                 "stack sees on a shared machine")
+
+
+class TimingConfig(CommandDisturbances):
+    control_rate_hz: Annotated[float, Field(ge=100, le=100_000)] = Field(
+        default=10_000.0, description="sampling and control rate, Hz")
+    plant_step_s: Annotated[float, Field(gt=0, le=1e-3)] = Field(
+        default=1e-5, description="the plant's integration step, s")
+    delay_samples: Annotated[int, Field(ge=0, le=200)] = Field(
+        default=0, description="loop delay: the command answering sample k acts from sample k + this (samples)")
+    duration_s: Annotated[float, Field(gt=0, le=3600)] = Field(default=0.2, description="simulated time, s")
 
 
 class LimitsConfig(Strict):

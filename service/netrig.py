@@ -18,7 +18,7 @@ import numpy as np
 from schemas.network import EventConfig, NetworkScenario
 from service.core.types import Sample
 from service.plant.network import NetworkPlant
-from service.plant.rlc import CommandSchedule, Sensor
+from service.plant.rlc import CommandChannel, CommandSchedule, Sensor
 from service.sim import substeps
 
 
@@ -41,6 +41,8 @@ class NetworkRigModel:
         self.sensors = [Sensor(net.sensor, net.seed * 1000 + j) for j in range(ns)]
         self.delays: list[deque] = [deque([(0.0, 0.0)] * self.d) for _ in range(ns)]
         self.scheds = [CommandSchedule(self.d if realtime else 0) for _ in range(ns)]
+        # timing's command disturbances (lockstep and offline: a realtime stack has its own), per source its own draws
+        self.channels = [CommandChannel(tm, [net.seed, j]) for j in range(ns)]
         if net.start == "steady":
             plant.start_steady([s.share for s in net.sources.values()], net.nominal_v_V)
         self.pending: list[EventConfig] = sorted(net.events, key=lambda e: e.t_s)
@@ -95,18 +97,15 @@ class NetworkRigModel:
         return [p.load_power(q, p.t) for q in range(len(p.load_list))]
 
     def command(self, j: int, k: int, du: float | None, du_next: float = 0.0) -> float:
-        """Source j's answer to sample k (du/dt, planned du/dt V/s; None: none came) through its loop delay: the
-        rate its converter applies over period k (V/s)."""
+        """Source j's answer to sample k (du/dt, planned du/dt V/s; None: none came) through its loop delay and
+        timing's command disturbances: the rate its converter applies over period k (V/s)."""
         q = self.delays[j]
         if self.d:
             q.append(None if du is None else (du, du_next))
             got = q.popleft()
         else:
             got = None if du is None else (du, du_next)
-        sched = self.scheds[j]
-        if got is not None:
-            sched.arrive(k, *got)
-        self.r[j] = sched.take(k)[0]
+        self.r[j] = self.channels[j].deliver(self.scheds[j], k, self.plant.t, got)
         return self.r[j]
 
     def arrive(self, j: int, seq: int, du: float, du_next: float) -> None:

@@ -19,7 +19,7 @@ from service.core.feasibility import FeasibilityMonitor, Violation, incoming_ran
 from service.core.types import Incoming
 from service.forecast import OutgoingForecast, forecast_outgoing
 from service.plant.profiles import Profile
-from service.plant.rlc import CommandSchedule, RLCPlant, Sensor, load_current
+from service.plant.rlc import CommandChannel, CommandSchedule, RLCPlant, Sensor, load_current
 
 BAND_SETTLE = 0.02  # +-2 % of v_ref
 HOLD_FROM_S = 0.05  # "holds" metric looks at t >= this
@@ -61,11 +61,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     core = make_core(scn.controller, scn.model, T, tm.delay_samples, impl)
     delay: deque[tuple[float, float]] = deque([(0.0, 0.0)] * tm.delay_samples)
     sched = CommandSchedule(0)  # after the delay line, as the lockstep HIL plant: a lost command never arrives
-    loss = tm.command_loss
-    outages = tm.command_outages
-    loss_rng = np.random.default_rng([scn.seed, 0xC0DE])  # its own stream: sensor noise stays the same
-    late_p, late_windows = tm.command_late, tm.command_late_windows
-    late_rng = np.random.default_rng([scn.seed, 0x1A7E])  # and its own: the losses stay the same
+    channel = CommandChannel(tm, [scn.seed])  # loss, lateness, outages on the way to the plant
 
     feas = FeasibilityMonitor(scn.feasibility.window_s)
     tp = tau_prime(scn.model.L_H, scn.model.R_ohm, effective_gain(scn.controller, scn.model))
@@ -102,18 +98,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
             cmd = delay.popleft()
         else:
             cmd = (out.du_dt, out.du_dt_next)
-        # lost, or in an outage (the plant hears nothing): its predecessor's plan acts (0 if that was lost too)
-        out_of_reach = bool(outages) and any(a <= t < a + w for a, w in outages)
-        late = False
-        if not out_of_reach and not (loss and loss_rng.random() < loss):
-            # one period late: after its period was taken (its predecessor's plan acted), before the next
-            late = bool(late_p and late_rng.random() < late_p) or \
-                bool(late_windows) and any(a <= t < a + w for a, w in late_windows)
-            if not late:
-                sched.arrive(k, *cmd)
-        r_apply = sched.take(k)[0]
-        if late:
-            sched.arrive(k, *cmd)
+        r_apply = channel.deliver(sched, k, t, cmd)
         est = out.est
         if t >= t_warm:
             feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)

@@ -188,6 +188,33 @@ class CommandSchedule:
         return 0.0
 
 
+class CommandChannel:
+    """The seeded disturbances of timing (CommandDisturbances) on one source's commands, between its delay line and
+    its CommandSchedule (pure: no clock, no I/O). ``deliver(sched, k, t, cmd)`` hands the command for period k (or
+    None: none came) to the schedule as the disturbances say and returns the rate applied over period k (V/s):
+    lost or in an outage, it never arrives; late, it arrives after its period was taken (its plan still serves the
+    next); else in time. seed: the streams' key (a list of ints); each kind draws from its own stream."""
+
+    def __init__(self, tm, seed: list[int]):
+        self.loss, self.outages = tm.command_loss, tm.command_outages
+        self.late_p, self.late_windows = tm.command_late, tm.command_late_windows
+        self.loss_rng = np.random.default_rng([*seed, 0xC0DE])  # sensor noise stays the same
+        self.late_rng = np.random.default_rng([*seed, 0x1A7E])  # and the losses stay the same with lateness on
+
+    def deliver(self, sched: CommandSchedule, k: int, t: float, cmd: tuple[float, float] | None) -> float:
+        late = False
+        if cmd is not None and not (self.outages and any(a <= t < a + w for a, w in self.outages)) and not (
+                self.loss and self.loss_rng.random() < self.loss):
+            late = bool(self.late_p and self.late_rng.random() < self.late_p) or \
+                bool(self.late_windows) and any(a <= t < a + w for a, w in self.late_windows)
+            if not late:
+                sched.arrive(k, *cmd)
+        r = sched.take(k)[0]
+        if late:
+            sched.arrive(k, *cmd)
+        return r
+
+
 class Sensor:
     """Seeded white noise and quantisation on i, v, u, i_load; drawn in blocks (same stream everywhere)."""
 
