@@ -142,6 +142,38 @@ def test_late_or_silent_interaction_variables_make_the_sources_fall_back_without
         assert all(s["first_fallback_t_s"] == pytest.approx(0.41, abs=1e-3) for s in m["sources"].values())
 
 
+AGGRESSIVE = [f"sources.{s}.controller.{kv}" for s in ("S1", "S2", "S3")
+              for kv in ("K_per_s=1000", "observer_gain=0", "plan_next_period=true")]
+
+
+@pytest.mark.parametrize("disturbance", ["timing.command_late=0.1", "timing.command_loss=0.1",
+                                         "timing.command_outages=[[1.0, 0.02], [3.0, 0.02]]"])
+def test_the_realtime_network_rides_through_late_lost_and_stalled_commands(disturbance):
+    """A realtime stack on a shared machine delivers some commands a period late, loses some, and stalls for
+    tens of ms (docs/limits.md). The shipped 1 kHz network (K = 400 /s from an observer, a missing command holds
+    u) keeps the bus within 10 % through each; with the gain and the planned commands the offline figures were
+    first tuned with (K = 1000 /s on the raw sample), the same disturbance makes it diverge: the planned command,
+    predicted four periods ahead through a model that sees the lines as a constant-power load, pushes the wrong
+    way, and so did the chatter of the sensor noise at that gain."""
+    m = _run("realtime", disturbance).metrics
+    assert not m["diverged"], m["diverged_at_s"]
+    assert 72.0 <= m["buses"]["bus"]["v_min"] and m["buses"]["bus"]["v_max"] <= 88.0, m["buses"]
+    assert _run("realtime", disturbance, *AGGRESSIVE).metrics["diverged"]
+
+
+def test_the_network_rig_model_applies_the_command_disturbances_per_source():
+    """Each source's commands get their own seeded draws (S1's losses are not S2's), the same in every run."""
+    from service.netrig import NetworkRigModel
+
+    net = load_network(NET / "realtime.toml", ["timing.command_loss=0.5"])
+    a, b = NetworkRigModel(net), NetworkRigModel(net)
+    applied = np.array([[m.command(j, k, 100.0 + k, -1.0) for k in range(200) for j in range(3)]
+                        for m in (a, b)]).reshape(2, 200, 3)
+    assert np.array_equal(applied[0], applied[1])
+    held = applied[0] != 100.0 + np.arange(200)[:, None] - net.timing.delay_samples  # not its own command: lost
+    assert 0.3 < held[10:].mean() < 0.7 and not np.array_equal(held[:, 0], held[:, 1])
+
+
 def test_the_shipped_radial_16_is_the_bench_generator_s_and_regulates():
     """scenarios/network/radial-16.toml is clients.bench.network.radial(16) written out (so the bench's scale
     figures are the shipped scenario's); a short run regulates with every source sharing."""
