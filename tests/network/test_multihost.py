@@ -2,8 +2,8 @@
 namespace), one Zenoh router per host under the secure profile (user/password, access control), every process a
 client of its host's router, the routers linked hub-and-spoke over veth links (docs/across-hosts.md).
 
-Needs root (CI has it); elsewhere it skips, saying why. One run of the realtime network (1 kHz, 4 ms loop delay; S1
-and S2 share the bus 2:1, the load steps at 2 s) in which, in turn:
+Needs root (CI has it); elsewhere it skips, saying why. One run of the 1 kHz network (4 ms loop delay; S1 and S2
+share the bus 2:1, the load steps at 2 s) in which, in turn:
 
 * S2's host is cut off (its link set down at the switch): the coordinator trips S2 once the routers' lease ends, S1
   is allocated the whole load, S2's daemon holds its source; the link restored, S2 asks to connect again and is
@@ -13,7 +13,12 @@ and S2 share the bus 2:1, the load steps at 2 s) in which, in turn:
 
 Every process and namespace is removed afterwards, also on failure. The measured times are printed (pytest -s) and
 written to multihost-times.json in the test's directory. MULTIHOST_ZENOH_LOG=info (or a Zenoh log filter) makes every
-process log Zenoh's sessions and links."""
+process log Zenoh's sessions and links.
+
+The rig paces in lockstep by default: the physics is then the same however late the routers deliver, and what is
+tested is the distribution (trips on a lost token, the handshake, a router's restart). MULTIHOST_PACING=realtime
+samples on the wall clock instead: on this shared 2-core machine the commands then miss their 4 ms deadline at
+most samples through four routers, and the network can diverge (docs/limits.md), so it is a measurement, not CI's."""
 
 from __future__ import annotations
 
@@ -33,10 +38,14 @@ from conftest import SCENARIOS
 from clients.netns import Hosts, unavailable_reason
 
 SCENARIO = SCENARIOS / "network" / "realtime.toml"
-DURATION_S = 15.0  # of sample time: enough for what follows, which is placed by what the run shows, not by the clock
+REALTIME = os.environ.get("MULTIHOST_PACING", "lockstep") == "realtime"
+# of sample time: enough for what follows, which is placed by what the run shows, not by the clock (lockstep through
+# four routers runs at about 170 samples/s here, and the coordinator's outage costs it some 3 500 samples)
+DURATION_S = 15.0 if REALTIME else 12.0
 # S3's plug-in at 4 s left out (the handshake here is S2's return): a third daemon would be one more realtime process
 # on the two CPUs every host shares here
 SET = ["--set", f"timing.duration_s={DURATION_S:g}", "--set", "events=[]"]
+RT_FLAG = ["--realtime"] if REALTIME else []  # the daemons and the coordinator: answer the newest sample only
 SOURCES = ["S1", "S2"]  # S3 stays disconnected, no daemon
 LOCAL = "tcp/127.0.0.1:7447"  # every host's router, for its own processes (each namespace has its own loopback)
 HUB_PORT = 7448  # the hub's router, for the other routers
@@ -207,7 +216,8 @@ def bus_back_s(t: np.ndarray, v: np.ndarray, t0: float, t1: float, band: float =
 def test_the_network_across_hosts_cut_restore_and_router_restart(network):
     t_test = time.monotonic()
     net, hosts = network, network.hosts
-    times: dict = {"realtime_priority": "SCHED_FIFO" if net.rt else f"nice {NICE}"}
+    times: dict = {"pacing": "realtime" if REALTIME else "lockstep",
+                   "realtime_priority": "SCHED_FIFO" if net.rt else f"nice {NICE}"}
     net.write_profile()
     for h in HOSTS:  # the hub first; the others connect to it (and would retry until it is there)
         net.start_router(h)
@@ -216,11 +226,11 @@ def test_the_network_across_hosts_cut_restore_and_router_restart(network):
     p1 = Probe(hosts, "h1", net.zenoh_dict("operator"))
     p2 = Probe(hosts, "h2", net.zenoh_dict("operator"))
     for s in SOURCES:  # --connect-at 0: a source whose breaker is open asks to connect
-        net.start(s, HOST_OF[s], ["run", "--network", str(SCENARIO), "--source", s, "--realtime", "--connect-at",
+        net.start(s, HOST_OF[s], ["run", "--network", str(SCENARIO), "--source", s, *RT_FLAG, "--connect-at",
                                   "0", *SET, "--stats-out", str(net.work / f"{s}.json"), *net.zenoh_args(s)], hot=True)
-    net.start("coordinator", "coord", ["coordinator", str(SCENARIO), "--realtime", *SET,
+    net.start("coordinator", "coord", ["coordinator", str(SCENARIO), *RT_FLAG, *SET,
                                        *net.zenoh_args("coordinator")])
-    rig = net.start("rig", "rig", ["plant", "--config", str(SCENARIO), "--pacing", "realtime", *SET, "--json",
+    rig = net.start("rig", "rig", ["plant", "--config", str(SCENARIO), "--pacing", times["pacing"], *SET, "--json",
                                    "--out", str(net.work / "rig.mcap"), *net.zenoh_args("rig")], hot=True)
 
     def coord(cond=lambda s: True):
@@ -232,7 +242,7 @@ def test_the_network_across_hosts_cut_restore_and_router_restart(network):
     # ---- the network runs across the hosts, through the load step at 2 s
     wait_for("the rig to sample (the coordinator's seq > 0)", lambda: coord(lambda s: s["seq"] > 0), 40.0)
     times["startup_s"] = round(time.monotonic() - t_test, 1)
-    st = wait_for("sample time 3 s", lambda: coord(lambda s: s["t"] > 3.0), 10.0)
+    st = wait_for("sample time 3 s", lambda: coord(lambda s: s["t"] > 3.0), 40.0)
     assert st["sources"]["S1"]["connected"] and st["sources"]["S2"]["connected"] and st["trips"] == []
     assert not st["sources"]["S3"]["connected"]
 
@@ -278,13 +288,15 @@ def test_the_network_across_hosts_cut_restore_and_router_restart(network):
     net.start_router("coord")
     times["router_down_s"] = round(time.monotonic() - t_stop, 2)
     # back: it answers again and has taken samples from after the outage (the gap is counted when one comes)
-    down_samples = int(times["router_down_s"] * 1000)
+    # realtime: the samples of the outage's wall time; lockstep: the rig goes on without the coordinator at its own
+    # pace, so at least one
+    down_samples = int(times["router_down_s"] * 1000) if REALTIME else 1
     st = wait_for("the coordinator back on the bus", lambda: coord(
         lambda s: s["seq"] > before["seq"] + down_samples + 100), 20.0, every_s=0.05)
     times["router_stop_to_coordinator_back_s"] = round(time.monotonic() - t_stop, 2)
     missed = times["coordinator_samples_missed"] = st["counters"]["missing_samples"] - before["counters"][
         "missing_samples"]
-    assert missed >= 0.5 * down_samples, (missed, times)  # the outage, sample by sample
+    assert missed >= (0.5 * down_samples if REALTIME else 1), (missed, times)  # the outage, sample by sample
     attempts = [t for t in st["trips"] if t["t"] >= before["t"]]
     times["trip_requests_at_router_restart"] = [f"{t['source']} rig_ok={t['rig_ok']}" for t in attempts]
     assert st["sources"]["S1"]["connected"] and st["sources"]["S2"]["connected"], (
@@ -297,7 +309,7 @@ def test_the_network_across_hosts_cut_restore_and_router_restart(network):
     t_restart_sample = before["t"]
 
     # ---- the end of the run: the rig's verdict, the operator across hosts, and the books balance
-    rc = rig.wait(timeout=DURATION_S + 30.0)
+    rc = rig.wait(timeout=DURATION_S + 60.0)
     assert rc == 0, net.log("rig")
     res = last_json(net.work / "rig.out")
     assert not res["metrics"]["diverged"], res["metrics"]
