@@ -175,6 +175,9 @@ class NetworkRole(Strict):
     idle_tau_s: Annotated[float, Field(gt=0)] = Field(default=0.005, description="idle mode's time constant, s")
     open_idle: Literal["droop", "hold"] = Field(default="droop", description="disconnected: the idle droop law, or "
                                                                              "hold u")
+    resume_ramp_s: Annotated[float, Field(ge=0)] = Field(default=0.0, description="after a fallback, from its own "
+                                                                                  "terminal's power to the allocation "
+                                                                                  "linearly over this long, s")
     stale_s: Annotated[float, Field(gt=0)] = Field(default=0.01, description="an allocation older than this (sample "
                                                                              "time) is stale: the source falls back "
                                                                              "to its own terminal power, s")

@@ -132,6 +132,8 @@ class LinkConfig(Strict):
     loss: Annotated[float, Field(ge=0, lt=1)] = Field(default=0.0, description="probability a message is lost, "
                                                                                "seeded")
     silent_from_s: NonNeg | None = Field(default=None, description="from this time on no message arrives, s")
+    silent_until_s: NonNeg | None = Field(default=None, description="the silence ends here, s (None: it lasts): a "
+                                                                     "coordinator that goes away and comes back")
 
 
 class LayerConfig(Strict):
@@ -162,6 +164,10 @@ class LayerConfig(Strict):
                                                        "constant, s")
     plug_in_ramp_s: NonNeg = Field(default=0.0, description="live-sum: a source that connects takes its share "
                                                             "linearly over this long, s (0: at once)")
+    resume_ramp_s: NonNeg = Field(default=0.0, description="a source whose P^{r,in} is fresh again after a fallback "
+                                                           "moves from its own terminal's power to it linearly over "
+                                                           "this long, s (0: at once; a returning coordinator then "
+                                                           "stepped the sources back to their shares)")
     open_v_ref: Literal["common", "bus"] = Field(
         default="bus", description="the v_ref a disconnected source gets each window: the common one, or the "
                                       "buses' mean voltage (it waits at the voltage it will close onto)")

@@ -87,15 +87,16 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     for src in cfgs:
         core = make_core(src.controller, src.model_params(), T, d, impl)
         ctls.append(SourceController(core, T, idle_power_W=lay.idle_power_W, idle_tau_s=lay.idle_tau_s,
-                                     hold_when_open=lay.open_idle == "hold"))
+                                     hold_when_open=lay.open_idle == "hold", resume_ramp_s=lay.resume_ramp_s))
         feas.append(FeasibilityMonitor(lay.window_s))
     config_events: dict[str, list] = {name: [] for name in names}  # the layer's v_ref moves: (t, seq, v_ref V)
     ranges: dict[str, list] = {name: [] for name in names}  # per source: (window, Z^{r,in}) as set
-    # links: per receiving source, (delay in samples, loss, silent from)
+    # links: per receiving source, (delay in samples, loss, silent from, silent until)
     links = []
     for name in names:
         ln = link_of(net, name)
-        links.append((int(round(ln.delay_s / T)), ln.loss, ln.silent_from_s))
+        links.append((int(round(ln.delay_s / T)), ln.loss, ln.silent_from_s,
+                      math.inf if ln.silent_until_s is None else ln.silent_until_s))
     link_rng = np.random.default_rng([net.seed, 0x11CC])
     inbox: list[deque] = [deque() for _ in range(ns)]  # (arrival sample, t sent, P_in)
     got = [(-math.inf, 0.0, 0.0)] * ns  # (t sent, P_in W, its rate W/s) of the newest P^{r,in} each source received
@@ -141,8 +142,8 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
             got = [(t, want[j], 0.0) for j in range(ns)]
         # the links, then each controller
         for j in range(ns):
-            delay_k, loss, silent = links[j]
-            if not (silent is not None and t >= silent) and not (loss and link_rng.random() < loss):
+            delay_k, loss, silent, back = links[j]
+            if not (silent is not None and silent <= t < back) and not (loss and link_rng.random() < loss):
                 inbox[j].append((k + delay_k, t, want[j], want_rate[j]))
             q = inbox[j]
             while q and q[0][0] <= k:

@@ -11,7 +11,9 @@ of the design notes come around it, and this wrapper answers them without touchi
   (``core.hold(seq, du_dt)``), so its delay prediction stays right across the switch.
 * **stale interaction variables** — when the neighbours' messages are older than the caller's bound
   (``fresh`` False), P^{r,in} falls back to the source's own terminal power, -v i_out from its own sample: the
-  own-terminal law, which needs no communication.
+  own-terminal law, which needs no communication. Fresh again, it moves from that power to P^{r,in} linearly over
+  ``resume_ramp_s`` (P = P_own + (P^{r,in} - P_own) n / N, n the steps since, N = resume_ramp_s / T): the
+  sources' powers then come back to their shares together instead of in one step.
 * **light load** is the core's i_floor (``controller.limits.i_floor_A``): the notes measured a 2 A floor
   collapsing a source that carries 200 W; the default 0.5 A does not.
 
@@ -32,7 +34,8 @@ class SourceController:
     """The core of one source with its idle mode and its stale-data fallback (see the module docstring)."""
 
     def __init__(self, core, period_s: float, idle_power_W: float = 30.0, idle_exit: float = 1.5,
-                 droop_ohm: float = 0.4, idle_tau_s: float = 5e-3, hold_when_open: bool = False):
+                 droop_ohm: float = 0.4, idle_tau_s: float = 5e-3, hold_when_open: bool = False,
+                 resume_ramp_s: float = 0.0):
         self.core = core
         # disconnected: hold u (du/dt = 0) instead of the droop law; at a low rate with milliseconds of loop delay
         # the droop law cannot damp the open terminal's L-C resonance and rang it up (1 kHz, 2-4 ms: diverged)
@@ -43,6 +46,8 @@ class SourceController:
         self.mode = IDLE
         self.idle = True
         self.P_in_used = 0.0  # the P^{r,in} the last step gave the core (W; its own terminal's in fallback)
+        self.resume_steps = max(0, round(resume_ramp_s / period_s))  # N of the resume ramp (0: none)
+        self._since_fallback = self.resume_steps  # steps since the last fallback ended (>= N: no ramp)
         self.switches = 0  # entries into and exits from idle
 
     @property
@@ -66,6 +71,12 @@ class SourceController:
         connected: its breaker is closed; fresh: that P^{r,in} is recent enough to use."""
         if not fresh:
             P_in_W, P_in_dot_W_per_s = -s.v * s.i_load, 0.0  # its own terminal power
+            self._since_fallback = 0
+        elif self._since_fallback < self.resume_steps:  # back from a fallback: from its own power to P^{r,in}
+            self._since_fallback += 1
+            a = self._since_fallback / self.resume_steps
+            P_own = -s.v * s.i_load
+            P_in_W, P_in_dot_W_per_s = P_own + a * (P_in_W - P_own), a * P_in_dot_W_per_s
         self.P_in_used = P_in_W
         power = abs(P_in_W)
         if not connected:
