@@ -26,12 +26,16 @@ TICK_S = os.sysconf("SC_CLK_TCK")
 
 
 def realtime_sets(rate_hz: float, sources: list[str], delay_ms: float = 4.0) -> list[str]:
-    """The realtime stack's settings at a rate: delay_ms of loop delay in whole samples (at least 2), at most 20 V of
-    source-voltage change per period, hold u while open, a plug-in's share over 50 ms."""
+    """The realtime stack's settings at a rate, as scenarios/network/realtime.toml's at 1 kHz: delay_ms of loop delay
+    in whole samples (at least 2), at most 20 V of source-voltage change per period, K = 400 /s on the observer's
+    estimate without planned commands (docs/decisions/0027), hold u while open, a plug-in's share and a return from a
+    fallback over 50 ms."""
     d = max(2, round(delay_ms * 1e-3 * rate_hz))
     return [f"timing.control_rate_hz={rate_hz}", f"timing.delay_samples={d}", 'layer.open_idle="hold"',
-            "layer.plug_in_ramp_s=0.05",
-            *(f"sources.{s}.controller.limits.du_dt_max_V_per_s={20 * rate_hz}" for s in sources)]
+            "layer.plug_in_ramp_s=0.05", "layer.resume_ramp_s=0.05",
+            *(f"sources.{s}.controller.{kv}" for s in sources
+              for kv in (f"limits.du_dt_max_V_per_s={20 * rate_hz}", "K_per_s=400", "observer_gain=0.5",
+                         "plan_next_period=false"))]
 
 
 def cpu_s(pid: int) -> float:
@@ -196,6 +200,7 @@ def rate_run(work: Path, rate_hz: float, seconds: float) -> dict:
             "periods_without_command_pct": 100.0 * sum(c.get(f"{s}_stale_periods", 0) + c.get(f"{s}_planned_periods", 0)
                                                        for s in ("S1", "S2")) / (2 * max(1, res["samples"])),
             "late_commands": sum(c.get(f"{s}_late", 0) for s in ("S1", "S2")),
+            "command_age": res.get("command_age"),
             "daemon_missing_samples": {s: st["loop"]["missing_samples"] for s, st in statuses.items()},
             "cpu_pct": {n: round(v, 1) for n, v in cpu.items()}}
 

@@ -54,6 +54,8 @@ class NetworkRig:
         self.events: list[Event] = []
         self.counters = {"samples": 0, "commands": 0, "timeouts": 0, "rejected": 0, "late": 0, "breaker_commands": 0,
                          "missed": 0}
+        # realtime: per source, how many commands came 0, 1, ... samples after the one they answer (the last bin: older)
+        self.age_hist = {name: [0] * (2 * self.model.d + 3) for name in self.names}
         self.alive: dict[str, bool | None] = dict.fromkeys(self.names)
         self.lagging: set[str] = set()
         self.answered = {name: -1 for name in self.names}
@@ -157,7 +159,7 @@ class NetworkRig:
                         if a is not None:
                             model.arrive(j, 0, *a)
                     next_ns = now_ns() + period_ns
-                self._drain()
+                self._drain(k)
                 r = [model.take(j, k) for j in range(ns)]
             rows.append(t)
             for j in range(ns):
@@ -228,9 +230,12 @@ class NetworkRig:
             out.append(got)
         return out
 
-    def _drain(self) -> None:
-        """Realtime: every command that came, onto its source's schedule."""
+    def _drain(self, k: int) -> None:
+        """Realtime: every command that came, onto its source's schedule; its age (k - the sample it answers:
+        in time for its period while <= the loop delay) into the source's histogram."""
+        top = len(self.age_hist[self.names[0]]) - 1
         for j, name in enumerate(self.names):
+            hist = self.age_hist[name]
             _, q = self.cmd[name]
             while True:
                 try:
@@ -240,6 +245,7 @@ class NetworkRig:
                 c = self._decode(name, payload)
                 if c is not None:
                     self.model.arrive(j, c[0], c[2], c[3])
+                    hist[min(max(k - c[0], 0), top)] += 1
 
     # ---------------------------------------------------------------- breakers
     def _serve_breaker(self) -> None:
@@ -317,6 +323,7 @@ class NetworkRig:
             for k, v in sched.counts.items():
                 self.counters[f"{name}_{k}"] = v
         out = {"metrics": res.metrics, "counters": dict(self.counters), "pacing": self.cfg.pacing,
+               "command_age": {s: age_summary(h, self.model.d) for s, h in self.age_hist.items() if sum(h)},
                "control_rate_hz": self.net.timing.control_rate_hz, "samples": n,
                "wall_s": getattr(self, "wall_s", None),
                "rate_achieved_hz": n / self.wall_s if getattr(self, "wall_s", 0) else None,
@@ -326,6 +333,16 @@ class NetworkRig:
             write_rig_log(self.cfg.out, res, self.cfg.prefix, out)
         out["result"] = res
         return out
+
+
+def age_summary(hist: list[int], d: int) -> dict:
+    """A realtime rig's command ages (samples from the sample answered to the one the rig was about to take when
+    the command was there; the last bin holds the older ones): median, 99th percentile, and the share that came
+    after their period (older than the loop delay d)."""
+    n = sum(hist)
+    cum = np.cumsum(hist)
+    return {"p50_samples": int(np.searchsorted(cum, 0.5 * n)), "p99_samples": int(np.searchsorted(cum, 0.99 * n)),
+            "after_their_period_pct": 100.0 * sum(hist[d + 1:]) / n, "commands": n}
 
 
 def add_load_events(res: NetworkResult) -> None:
