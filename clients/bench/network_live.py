@@ -89,7 +89,11 @@ def plug_in(work: Path, realtime: bool, sets: list[str]) -> dict:
         res = live.wait_rig(900)
         live.close()
         rig = read_rig_log(str(live.logs / "rig.mcap"))
-    [ev] = [e for e in res["metrics"]["events"] if e["kind"] == "connect"]
+    evs = [e for e in res["metrics"]["events"] if e["kind"] == "connect"]
+    if not evs:  # refused, or not closed within the run: the rig's and coordinator's logs say which
+        return {"asked_at_s": 0.8, "closed_at_s": None, "diverged": res["metrics"]["diverged"],
+                "logs": str(live.logs), "checks_failed": [c["check"] for c in acceptance_checks(rig) if not c["ok"]]}
+    ev = evs[0]
     return {"asked_at_s": 0.8, "closed_at_s": ev["t_s"], "handshake_s": ev["t_s"] - 0.8,
             "bus_back_in_band_s": max(ev["bus_back_in_band_s"].values()) if None not in
             ev["bus_back_in_band_s"].values() else None, "inrush_A": ev.get("inrush_A"),

@@ -6,9 +6,10 @@ of the design notes come around it, and this wrapper answers them without touchi
 * **idle** — y_z = y_ref says nothing about v when P^{r,in} is near zero, and a source that is not connected
   has no power to follow: below ``idle_power_W`` (and whenever it is disconnected) the source holds its voltage
   instead, u -> v_ref - R_droop i with time constant ``idle_tau_s`` (du/dt = (u_target - u) / tau, within the
-  slew limit); with ``hold_when_open`` a disconnected one holds u instead. It leaves idle above ``idle_exit`` x that
-  power. The core is told what was applied
-  (``core.hold(seq, du_dt)``), so its delay prediction stays right across the switch.
+  slew limit); with ``hold_when_open`` a disconnected one holds u instead, and so does an idle one whose
+  interaction variables are stale (its breaker state, which comes with them, is then not known). It leaves idle
+  above ``idle_exit`` x that power. The core is told what was applied (``core.hold(seq, du_dt)``), so its delay
+  prediction stays right across the switch.
 * **stale interaction variables** — when the neighbours' messages are older than the caller's bound
   (``fresh`` False), P^{r,in} falls back to the source's own terminal power, -v i_out from its own sample: the
   own-terminal law, which needs no communication. Fresh again, it moves from that power to P^{r,in} linearly over
@@ -90,7 +91,9 @@ class SourceController:
             self.idle = idle
         if idle:
             self.mode = IDLE
-            if not connected and self.hold_when_open:
+            if self.hold_when_open and (not connected or not fresh):
+                # open, or not known to be closed: the caller's breaker state comes with the allocation, and a
+                # stale one may say closed after the breaker opened (a host cut off, then tripped)
                 self.core.hold(s.seq, 0.0)
                 return 0.0, 0.0
             lim = self.core.cfg.limits

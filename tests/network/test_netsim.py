@@ -101,6 +101,35 @@ def test_a_source_with_nothing_to_deliver_idles_at_its_reference():
     assert hi - lo > 5.0
 
 
+def _open_terminal_at_1khz(hold_when_open: bool) -> float:
+    """A source of the 1 kHz scenario whose breaker opened while its allocation went stale (its host cut off, then
+    tripped): it still believes the breaker closed (connected True, fresh False) and its terminal draws nothing.
+    2 s with noise and 4 samples of delay: the largest |v - 80 V| (V)."""
+    src = load_network(NET / "realtime.toml").sources["S2"]
+    plant = RLCPlant(PlantConfig(**src.model_params().model_dump(), initial={"i_A": 0.0, "v_V": 80.0}), _NoLoad())
+    sensor = Sensor(SensorConfig(noise_v_V=0.05, noise_i_A=0.05), 3)
+    ctl = SourceController(make_core(src.controller, src.model_params(), 1e-3, 4), 1e-3,
+                           hold_when_open=hold_when_open)
+    line = deque([0.0] * 4)
+    worst = 0.0
+    for k in range(2000):
+        s = sensor.measure(k, plant.t, plant.i, plant.v, plant.u, 0.0)
+        line.append(ctl.step(s, 0.0, 0.0, True, False)[0])
+        plant.advance(line.popleft(), 1e-3, 100)
+        worst = max(worst, abs(plant.v - 80.0))
+        if worst > 40.0:
+            break
+    return worst
+
+
+def test_an_open_source_with_a_stale_allocation_holds_its_voltage_at_1_khz():
+    """Seen across hosts: S2, tripped while cut off, got samples again before an allocation told it its breaker was
+    open; believing it closed, its idle droop law rang the open terminal's L-C (57 Hz) up to divergence within 60 ms.
+    With layer.open_idle = "hold" an idle source holds u also while its allocation is stale."""
+    assert _open_terminal_at_1khz(True) < 1.0
+    assert _open_terminal_at_1khz(False) > 10.0
+
+
 def test_a_feasible_source_plugs_in_gently_and_an_infeasible_one_is_refused():
     """Plug-in: the layer checks the source's forecast against its share of the window before closing its line.
     A feasible one closes with a small inrush and barely moves the bus, then shares; one whose gain is too slow
