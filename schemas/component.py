@@ -175,6 +175,9 @@ class NetworkRole(Strict):
     idle_tau_s: Annotated[float, Field(gt=0)] = Field(default=0.005, description="idle mode's time constant, s")
     open_idle: Literal["droop", "hold"] = Field(default="droop", description="disconnected: the idle droop law, or "
                                                                              "hold u")
+    fallback_idle_power_W: Annotated[float, Field(ge=0)] | None = Field(
+        default=None, description="in fallback it idles below this |own terminal power| instead, W (None: "
+                                  "idle_power_W)")
     resume_ramp_s: Annotated[float, Field(ge=0)] = Field(default=0.0, description="after a fallback, from its own "
                                                                                   "terminal's power to the allocation "
                                                                                   "linearly over this long, s")

@@ -164,6 +164,10 @@ class LayerConfig(Strict):
                                                        "constant, s")
     plug_in_ramp_s: NonNeg = Field(default=0.0, description="live-sum: a source that connects takes its share "
                                                             "linearly over this long, s (0: at once)")
+    fallback_idle_power_W: NonNeg | None = Field(
+        default=None, description="in fallback (P^{r,in} stale) a source idles below this |own terminal power| "
+                                  "instead of idle_power_W, W (None: idle_power_W). At 1 kHz a source left in "
+                                  "fallback near zero current rang up the mapping's fast mode u/(i L) and diverged")
     resume_ramp_s: NonNeg = Field(default=0.0, description="a source whose P^{r,in} is fresh again after a fallback "
                                                            "moves from its own terminal's power to it linearly over "
                                                            "this long, s (0: at once; a returning coordinator then "

@@ -28,11 +28,11 @@ TICK_S = os.sysconf("SC_CLK_TCK")
 def realtime_sets(rate_hz: float, sources: list[str], delay_ms: float = 4.0) -> list[str]:
     """The realtime stack's settings at a rate, as scenarios/network/realtime.toml's at 1 kHz: delay_ms of loop delay
     in whole samples (at least 2), at most 20 V of source-voltage change per period, K = 400 /s on the observer's
-    estimate without planned commands (docs/decisions/0027), hold u while open, a plug-in's share and a return from a
-    fallback over 50 ms."""
+    estimate without planned commands (docs/decisions/0027), hold u while open or idle in fallback (below 300 W), a
+    plug-in's share and a return from a fallback over 50 ms."""
     d = max(2, round(delay_ms * 1e-3 * rate_hz))
     return [f"timing.control_rate_hz={rate_hz}", f"timing.delay_samples={d}", 'layer.open_idle="hold"',
-            "layer.plug_in_ramp_s=0.05", "layer.resume_ramp_s=0.05",
+            "layer.plug_in_ramp_s=0.05", "layer.resume_ramp_s=0.05", "layer.fallback_idle_power_W=300",
             *(f"sources.{s}.controller.{kv}" for s in sources
               for kv in (f"limits.du_dt_max_V_per_s={20 * rate_hz}", "K_per_s=400", "observer_gain=0.5",
                          "plan_next_period=false"))]

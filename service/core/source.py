@@ -12,9 +12,10 @@ of the design notes come around it, and this wrapper answers them without touchi
   prediction stays right across the switch.
 * **stale interaction variables** — when the neighbours' messages are older than the caller's bound
   (``fresh`` False), P^{r,in} falls back to the source's own terminal power, -v i_out from its own sample: the
-  own-terminal law, which needs no communication. Fresh again, it moves from that power to P^{r,in} linearly over
-  ``resume_ramp_s`` (P = P_own + (P^{r,in} - P_own) n / N, n the steps since, N = resume_ramp_s / T): the
-  sources' powers then come back to their shares together instead of in one step.
+  own-terminal law, which needs no communication; in fallback it idles below ``fallback_idle_power_W`` (default:
+  the idle power), as a source left near zero current there rings up the mapping's fast mode. Fresh again, it
+  moves from that power to P^{r,in} linearly over ``resume_ramp_s`` (P = P_own + (P^{r,in} - P_own) n / N, n the
+  steps since, N = resume_ramp_s / T): the sources' powers then come back to their shares together, not in a step.
 * **light load** is the core's i_floor (``controller.limits.i_floor_A``): the notes measured a 2 A floor
   collapsing a source that carries 200 W; the default 0.5 A does not.
 
@@ -36,13 +37,15 @@ class SourceController:
 
     def __init__(self, core, period_s: float, idle_power_W: float = 30.0, idle_exit: float = 1.5,
                  droop_ohm: float = 0.4, idle_tau_s: float = 5e-3, hold_when_open: bool = False,
-                 resume_ramp_s: float = 0.0):
+                 resume_ramp_s: float = 0.0, fallback_idle_power_W: float | None = None):
         self.core = core
         # disconnected: hold u (du/dt = 0) instead of the droop law; at a low rate with milliseconds of loop delay
         # the droop law cannot damp the open terminal's L-C resonance and rang it up (1 kHz, 2-4 ms: diverged)
         self.hold_when_open = hold_when_open
         self.T = period_s
         self.idle_power_W, self.idle_exit = idle_power_W, idle_exit
+        # in fallback: near zero current the mapping's fast mode u/(i L) rang up at 1 kHz (docs/decisions/0027)
+        self.fallback_idle_power_W = idle_power_W if fallback_idle_power_W is None else fallback_idle_power_W
         self.droop_ohm, self.idle_tau_s = droop_ohm, idle_tau_s
         self.mode = IDLE
         self.idle = True
@@ -80,12 +83,13 @@ class SourceController:
             P_in_W, P_in_dot_W_per_s = P_own + a * (P_in_W - P_own), a * P_in_dot_W_per_s
         self.P_in_used = P_in_W
         power = abs(P_in_W)
+        floor = self.idle_power_W if fresh else self.fallback_idle_power_W
         if not connected:
             idle = True
         elif self.idle:
-            idle = power < self.idle_exit * self.idle_power_W
+            idle = power < self.idle_exit * floor
         else:
-            idle = power < self.idle_power_W
+            idle = power < floor
         if idle != self.idle:
             self.switches += 1
             self.idle = idle

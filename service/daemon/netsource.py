@@ -48,7 +48,8 @@ class NetworkSourceDaemon(Daemon):
         self.role = cfg.network
         self.ctl = SourceController(self.core, self.period_s, idle_power_W=self.role.idle_power_W,
                                     idle_tau_s=self.role.idle_tau_s,
-                                    hold_when_open=self.role.open_idle == "hold", resume_ramp_s=self.role.resume_ramp_s)
+                                    hold_when_open=self.role.open_idle == "hold", resume_ramp_s=self.role.resume_ramp_s,
+                                    fallback_idle_power_W=self.role.fallback_idle_power_W)
         self.alloc = Neighbour(self.role.coordinator, None)
         self.alloc_vals: tuple | None = None  # the newest allocation's values (schemas.codec.ALLOC order)
         self.lines: list[Neighbour] = []

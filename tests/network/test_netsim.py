@@ -221,6 +221,19 @@ def test_a_returning_coordinator_ramps_the_sources_back_to_their_shares():
     assert worst_after_return_pct("layer.resume_ramp_s=0")[0] > 2.0
 
 
+def test_a_source_left_in_fallback_near_zero_current_holds_instead_of_ringing_up():
+    """Seen across hosts: the coordinator went away 10 ms into S3's plug-in ramp, leaving S3 in fallback (its own
+    terminal's power) near zero current, where the exact mapping's fast mode u/(i L) is far above 1 kHz: its
+    commands alternated ever wider until saturated, and with 5 % of them late the network diverged within a second.
+    In fallback the 1 kHz scenario idles (holds u) below 300 W of its own power (layer.fallback_idle_power_W)."""
+    stranded = ["links.*.silent_from_s=4.01", "timing.duration_s=10", "timing.command_late=0.05"]
+    m = _run("realtime", *stranded).metrics
+    assert not m["diverged"], m["diverged_at_s"]
+    # the layer's messages never came back: S1 follows its own terminal, S3 holds
+    assert m["sources"]["S1"]["fallback_s"] > 5.0 and m["sources"]["S3"]["final_mode"] == "idle"
+    assert _run("realtime", *stranded, "layer.fallback_idle_power_W=30").metrics["diverged"]
+
+
 def test_the_shipped_radial_16_is_the_bench_generator_s_and_regulates():
     """scenarios/network/radial-16.toml is clients.bench.network.radial(16) written out (so the bench's scale
     figures are the shipped scenario's); a short run regulates with every source sharing."""
