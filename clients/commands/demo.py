@@ -29,9 +29,6 @@ DEMO_REALTIME_SETS = ["controller.K_per_s=1500.0", "timing.plant_step_s=5e-5", "
 # separate processes keeps on a 2-core machine (docs/benchmarks.md, "Network live"; scenarios/network/realtime.toml)
 NETWORK_DEMO_SCENARIO = EMBEDDED / "network-demo.toml"
 NETWORK_DEMO_REALTIME_SCENARIO = EMBEDDED / "network-demo-realtime.toml"
-NETWORK_REALTIME_SETS = ["timing.control_rate_hz=1000", "timing.delay_samples=4", 'layer.open_idle="hold"',
-                         "layer.plug_in_ramp_s=0.05"]
-NETWORK_REALTIME_SOURCE_SETS = ["controller.limits.du_dt_max_V_per_s=20000"]
 
 
 def realtime_schedule() -> str:
@@ -75,7 +72,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "recomputed from the logs as well. With --realtime the default is its twin at 1 kHz with "
                         "events a second apart (clients/embedded/network-demo-realtime.toml), and it passes when "
                         "every check the scenario passes offline at that rate holds live; another scenario gets "
-                        f"{' '.join(NETWORK_REALTIME_SETS)} and per source {' '.join(NETWORK_REALTIME_SOURCE_SETS)}")
+                        "scenarios/network/realtime.toml's settings: 1 kHz, 4 ms of loop delay, K = 400 /s on the "
+                        "observer's estimate, no planned commands, open and low-power fallback sources hold u, 50 ms "
+                        "ramps in and back")
     add_nice(d)
     add_cpus(d)
     add_scenario_set(d)
@@ -178,9 +177,9 @@ def run_network_demo(args: argparse.Namespace) -> int:
     if args.realtime and args.network == str(NETWORK_DEMO_SCENARIO):
         args.network = str(NETWORK_DEMO_REALTIME_SCENARIO)  # its realtime twin: 1 kHz, events a second apart
     elif args.realtime:
-        names = list(load_network(args.network, sets).sources)
-        sets = [*NETWORK_REALTIME_SETS, *(f"sources.{n}.{x}" for n in names for x in NETWORK_REALTIME_SOURCE_SETS),
-                *sets]
+        from clients.bench.network_live import realtime_sets
+
+        sets = [*realtime_sets(1000.0, list(load_network(args.network, sets).sources)), *sets]
     if args.duration:
         sets.append(f"timing.duration_s={args.duration}")
     net = load_network(args.network, sets)

@@ -7,7 +7,7 @@ from collections import deque
 
 import numpy as np
 import pytest
-from conftest import SCENARIOS
+from conftest import ROOT, SCENARIOS
 
 from schemas.network import load_network
 from schemas.scenario import CircuitParams, ControllerConfig, PlantConfig, SensorConfig
@@ -321,3 +321,17 @@ def test_a_source_s_own_link_entry_adds_to_the_common_one():
     net = load_network(NET / "two-source.toml", ["links.*.delay_s=0.005", "links.S2.loss=0.1"])
     assert (link_of(net, "S1").delay_s, link_of(net, "S1").loss) == (0.005, 0.0)
     assert (link_of(net, "S2").delay_s, link_of(net, "S2").loss) == (0.005, 0.1)
+
+
+def test_the_1_khz_scenarios_and_the_realtime_settings_agree():
+    """One set of 1 kHz settings: the bench's and demo's realtime_sets applied to the 10 kHz demo give its realtime
+    twin's layer, rate, delay and controllers, and scenarios/network/realtime.toml has the same."""
+    from clients.bench.network_live import realtime_sets
+
+    twin = load_network(ROOT / "clients" / "embedded" / "network-demo-realtime.toml")
+    for path in (ROOT / "clients" / "embedded" / "network-demo.toml", NET / "realtime.toml"):
+        names = list(load_network(path).sources)
+        net = load_network(path, realtime_sets(1000.0, names))
+        assert net.layer == twin.layer, path
+        assert (net.timing.control_rate_hz, net.timing.delay_samples) == (1000.0, 4)
+        assert all(net.sources[s].controller == twin.sources["S1"].controller for s in names), path
