@@ -291,10 +291,13 @@ class Coordinator:
             reply = {"accepted": True, "reason": "already connected", "window": window}
             self._answer(query, True, reply)
             return
-        if self.alive.get(name) is not True:
+        if self.alive.get(name) is not True:  # (its request may come before its token: it asks again)
+            reply = {"source": name, "accepted": False, "window": window, "at_seq": at,
+                     "reason": f"{name}: its controller's liveliness token is not up"}
             self.counters["refused"] += 1
-            self._answer(query, True, {"source": name, "accepted": False, "window": window,
-                                       "reason": f"{name}: its controller's liveliness token is not up"})
+            self.verdicts.append({"t": self.t, "seq": self.seq, **reply})
+            self._event(self.t, k, "connect", {**reply, "checked": False})  # refused before the layer's check
+            self._answer(query, True, reply)
             return
         # the v_ref the layer holds for it (it may have moved it at the end of sample k - 1)
         controller = controller.model_copy(update={"v_ref_V": self.layer.v_ref[s]})

@@ -58,7 +58,7 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
         # plug-in verdicts answered before this sample (after the previous one), with the layer's state then
         while vi < len(verdict_seqs) and verdict_seqs[vi] <= k:
             for d in connects[verdict_seqs[vi]]:
-                if "controller" not in d or d.get("reason") == "already connected":
+                if "controller" not in d or d.get("reason") == "already connected" or d.get("checked") is False:
                     continue
                 s = names.index(d["source"])
                 f = layer.connect_check(s, ControllerConfig.model_validate(d["controller"]), d["window"],

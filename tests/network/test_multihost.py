@@ -228,8 +228,9 @@ def test_the_network_across_hosts_cut_restore_and_router_restart(network):
     for s in SOURCES:  # --connect-at 0: a source whose breaker is open asks to connect
         net.start(s, HOST_OF[s], ["run", "--network", str(SCENARIO), "--source", s, *RT_FLAG, "--connect-at",
                                   "0", *SET, "--stats-out", str(net.work / f"{s}.json"), *net.zenoh_args(s)], hot=True)
+    # realtime: the coordinator is in every sample's path too (starved below the others it missed 81 % of them)
     net.start("coordinator", "coord", ["coordinator", str(SCENARIO), *RT_FLAG, *SET,
-                                       *net.zenoh_args("coordinator")])
+                                       *net.zenoh_args("coordinator")], hot=REALTIME)
     rig = net.start("rig", "rig", ["plant", "--config", str(SCENARIO), "--pacing", times["pacing"], *SET, "--json",
                                    "--out", str(net.work / "rig.mcap"), *net.zenoh_args("rig")], hot=True)
 
@@ -330,7 +331,10 @@ def test_the_network_across_hosts_cut_restore_and_router_restart(network):
     c = final["counters"]
     # every grid sample the rig sent reached the coordinator or is counted missing
     assert c["grid_samples"] + c["missing_samples"] == final["seq"] + 1 == res["samples"], (c, final["seq"], res)
-    assert c["accepted"] >= 1 and c["refused"] == 0, c  # S2's return
+    # S2's return; a refusal only for a request that came before its token (it asks again), each in the verdicts
+    refused = [v for v in final["verdicts"] if not v["accepted"]]
+    assert c["accepted"] >= 1 and c["refused"] == len(refused), (c, final["verdicts"])
+    assert all("liveliness token is not up" in v["reason"] for v in refused), refused
     for s in SOURCES:  # the restart, in each source's own books
         assert json.loads((net.work / f"{s}.json").read_text())["network"]["fallback_ticks"] > 0
 

@@ -219,6 +219,9 @@ def test_bad_input_is_refused_by_name_and_the_network_goes_on(tmp_path, trip_sce
             live.wait_until(z, "coordinator", lambda st: not st["sources"]["S2"]["connected"], 30)
             ok, r = ask("coordinator/connect", {"source": "S2", "controller": {"K_per_s": 1000.0}})
             assert ok and r["accepted"] is False and "liveliness" in r["reason"]
+            # and the operator sees it among the verdicts (counted as refused)
+            live.wait_until(z, "coordinator", lambda st: st["counters"]["refused"] >= 1 and any(
+                v["source"] == "S2" and not v["accepted"] and "liveliness" in v["reason"] for v in st["verdicts"]), 10)
         res = live.wait_rig(120)
     assert not res["metrics"]["diverged"]
     out = _json.loads((tmp_path / "run" / "coordinator.out").read_text().splitlines()[-1]) if (
