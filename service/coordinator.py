@@ -23,6 +23,7 @@ rare and, in lockstep, must happen between two samples.
 from __future__ import annotations
 
 import json
+import math
 import sys
 import threading
 from collections import deque
@@ -281,6 +282,7 @@ class Coordinator:
                 raise ValueError(f"source: {name!r} is not a source of {self.net.name!r}")
             s = self.names.index(name)
             controller = ControllerConfig.model_validate(body.get("controller") or {})
+            announced = None if body.get("Z_out") is None else announced_z_out(body)
         except (ValueError, TypeError) as e:
             self._answer(query, False, {"error": str(e)})
             return
@@ -301,11 +303,25 @@ class Coordinator:
             return
         # the v_ref the layer holds for it (it may have moved it at the end of sample k - 1)
         controller = controller.model_copy(update={"v_ref_V": self.layer.v_ref[s]})
-        f = self.layer.connect_check(s, controller, window, self.connected, self.d, self.impl)
-        reply = {"source": name, "accepted": f.feasible, "reason": f.reason, "window": window, "at_seq": at,
-                 "Z_out": {"P": [f.P_lo, f.P_hi], "P_dot": [f.P_dot_lo, f.P_dot_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]},
-                 "Z_in": {"P": list(f.z_in[:2]), "Qdot": list(f.z_in[2:])}}
-        if f.feasible:
+        if body.get("offer"):  # the handshake's first step: what it would be asked for, to forecast against
+            box, tau_p = self.layer.connect_offer(s, window, self.connected)
+            self._answer(query, True, {"source": name, "offer": True, "window": window, "at_seq": at,
+                                       "box": list(box), "tau_prime_s": tau_p, "v_ref_V": self.layer.v_ref[s],
+                                       "window_s": self.layer.cfg.window_s})
+            return
+        if announced is not None:  # its own forecast Z^{r,out}, checked against the current window's Z^{r,in}
+            P_out, Qdot_out, saturation = announced
+            reason, z_in = self.layer.judge_announced(s, window, self.connected, P_out, Qdot_out, saturation)
+            reply = {"source": name, "accepted": reason == "", "reason": reason, "window": window, "at_seq": at,
+                     "Z_out": {"P": list(P_out), "Qdot": list(Qdot_out)}, "saturation": saturation,
+                     "Z_in": {"P": list(z_in[:2]), "Qdot": list(z_in[2:])}, "announced": True}
+        else:  # a daemon that announces only its controller: the coordinator forecasts for it
+            f = self.layer.connect_check(s, controller, window, self.connected, self.d, self.impl)
+            reply = {"source": name, "accepted": f.feasible, "reason": f.reason, "window": window, "at_seq": at,
+                     "Z_out": {"P": [f.P_lo, f.P_hi], "P_dot": [f.P_dot_lo, f.P_dot_hi],
+                               "Qdot": [f.Qdot_lo, f.Qdot_hi]},
+                     "Z_in": {"P": list(f.z_in[:2]), "Qdot": list(f.z_in[2:])}}
+        if reply["accepted"]:
             ok, r = request(self.session, key(c.prefix, c.rig, "breaker"),
                             {"target": name, "closed": True, "at_seq": at, "by": c.id}, 5.0)
             if not ok:
@@ -457,6 +473,26 @@ class Coordinator:
     def _event(self, t: float, seq: int, kind: str, detail: dict) -> None:
         if self.recorder is not None:
             self.recorder.offer(self.t_ev, t, (t, max(seq, 0), kind, json.dumps(detail)))
+
+
+
+def announced_z_out(body: dict) -> tuple[tuple[float, float], tuple[float, float], str]:
+    """A connect request's announced Z^{r,out}: ((P lo, P hi) W, (Qdot lo, Qdot hi) W/s, the saturation its
+    forecast met); ValueError naming the field that is not two finite numbers in order, or not text."""
+    z = body.get("Z_out")
+    if not isinstance(z, dict):
+        raise ValueError("Z_out: expected an object {\"P\": [lo, hi], \"Qdot\": [lo, hi]}")
+    out = []
+    for part in ("P", "Qdot"):
+        v = z.get(part)
+        if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int | float) and not isinstance(x, bool)
+                                                              and math.isfinite(x) for x in v) and v[0] <= v[1]):
+            raise ValueError(f"Z_out.{part}: expected [lo, hi], two finite numbers, lo <= hi (got {v!r:.80})")
+        out.append((float(v[0]), float(v[1])))
+    saturation = body.get("saturation", "")
+    if not isinstance(saturation, str) or len(saturation) > 500:
+        raise ValueError("saturation: expected text (what the forecast met, \"\" for nothing)")
+    return out[0], out[1], saturation
 
 
 def run_coordinator(cfg: CoordinatorConfig, net: NetworkScenario, stop: threading.Event, impl: str = "auto",

@@ -97,12 +97,24 @@ class OutgoingForecast:
         box): P parts from the box itself (port identity), Qdot envelope and saturation as run (conservative),
         Z^{r,in} and the verdict from the box."""
         z_in = incoming_range(*box, tau_p, literal)
-        reason = self.saturation
-        if not reason and (self.Qdot_lo < z_in[2] or self.Qdot_hi > z_in[3]):
-            reason = (f"Qdot^r,out [{self.Qdot_lo:.4g}, {self.Qdot_hi:.4g}] W/s is not inside Qdot^r,in "
-                      f"[{z_in[2]:.4g}, {z_in[3]:.4g}] W/s")
+        reason = verdict(z_in, (-box[1], -box[0]), (self.Qdot_lo, self.Qdot_hi), self.saturation)
         return replace(self, P_lo=-box[1], P_hi=-box[0], P_dot_lo=-box[3], P_dot_hi=-box[2], z_in=z_in,
                        feasible=reason == "", reason=reason)
+
+
+def verdict(z_in: tuple[float, float, float, float], P_out: tuple[float, float], Qdot_out: tuple[float, float],
+            saturation: str = "") -> str:
+    """Whether Z^{r,out} lies in Z^{r,in} element by element (paper Eqn FeasibilityConds): "" if it does and the
+    source met no saturation, else what failed first. z_in: (P lo, P hi W, Qdot lo, Qdot hi W/s); P_out (W) and
+    Qdot_out (W/s): the forecast's ranges; saturation: the forecast's own failure ("" none)."""
+    if saturation:
+        return saturation
+    if P_out[0] < z_in[0] or P_out[1] > z_in[1]:
+        return f"P^r,out [{P_out[0]:.4g}, {P_out[1]:.4g}] W is not inside P^r,in [{z_in[0]:.4g}, {z_in[1]:.4g}] W"
+    if Qdot_out[0] < z_in[2] or Qdot_out[1] > z_in[3]:
+        return (f"Qdot^r,out [{Qdot_out[0]:.4g}, {Qdot_out[1]:.4g}] W/s is not inside Qdot^r,in "
+                f"[{z_in[2]:.4g}, {z_in[3]:.4g}] W/s")
+    return ""
 
 
 def trajectories(P_lo: float, P_hi: float, Pdot_lo: float, Pdot_hi: float, t0: float, settle_s: float,

@@ -25,7 +25,7 @@ from schemas.network import LinkConfig, NetworkScenario
 from schemas.scenario import ControllerConfig
 from service.core import effective_gain
 from service.core.feasibility import incoming_range, load_box, tau_prime
-from service.forecast import OutgoingForecast, forecast_outgoing
+from service.forecast import OutgoingForecast, forecast_outgoing, verdict
 
 RATE_TAU_S = 1e-3  # the filter on P^{r,in}'s rate, which a late message is carried forward with (s)
 FORECAST_MARGIN = 0.05  # the layer's load box is widened by this fraction for the feasibility checks
@@ -144,16 +144,30 @@ class InterconnectionLayer:
         z = incoming_ranges(self.loads, self.net, self.taus, window, live, self.loss_frac)
         return [zj if sh > 0.0 else None for zj, sh in zip(z, live, strict=True)]
 
-    def connect_check(self, s: int, controller: ControllerConfig, window: int, connected: list[bool],
-                      delay_samples: int, impl: str = "auto") -> OutgoingForecast:
-        """The plug-in check of source s: its forecast Z^{r,out} (service.forecast) for its share of window's load
-        box, with the sources connected now and s, against its Z^{r,in}."""
+    def connect_offer(self, s: int, window: int, connected: list[bool]) -> tuple[tuple[float, ...], float]:
+        """What source s would be asked to deliver over window if it connected now: its share (with the sources
+        connected now and s) of the window's load box (P lo, P hi W, Pdot lo, Pdot hi W/s), and its tau' (s)."""
         weight = sum(self.shares[j] for j in range(self.ns) if connected[j] or j == s)
         box = window_box(self.loads, self.net, window, self.loss_frac)
         a = self.shares[s] / weight
+        return tuple(a * x for x in box), self.taus[s]
+
+    def connect_check(self, s: int, controller: ControllerConfig, window: int, connected: list[bool],
+                      delay_samples: int, impl: str = "auto") -> OutgoingForecast:
+        """The plug-in check of source s: its forecast Z^{r,out} (service.forecast) for its offer (connect_offer)
+        against its Z^{r,in}. A live source forecasts the same itself and announces it (judge_announced)."""
+        box, tau_p = self.connect_offer(s, window, connected)
         src = self.net.sources[self.names[s]]
-        return forecast_outgoing(controller, src.model_params(), self.T, delay_samples, tuple(a * x for x in box),
-                                 self.taus[s], max_ramp_s=self.cfg.window_s, impl=impl)
+        return forecast_outgoing(controller, src.model_params(), self.T, delay_samples, box, tau_p,
+                                 max_ramp_s=self.cfg.window_s, impl=impl)
+
+    def judge_announced(self, s: int, window: int, connected: list[bool], P_out: tuple[float, float],
+                        Qdot_out: tuple[float, float], saturation: str = "") -> tuple[str, tuple]:
+        """The plug-in check of an announced Z^{r,out} (P_out W, Qdot_out W/s, and the saturation its forecast met)
+        against source s's Z^{r,in} for window: (reason, "" if feasible; Z^{r,in})."""
+        box, tau_p = self.connect_offer(s, window, connected)
+        z_in = incoming_range(*box, tau_p)
+        return verdict(z_in, P_out, Qdot_out, saturation), z_in
 
 
 def link_of(net: NetworkScenario, source: str) -> LinkConfig:

@@ -61,14 +61,20 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
                 if "controller" not in d or d.get("reason") == "already connected" or d.get("checked") is False:
                     continue
                 s = names.index(d["source"])
-                f = layer.connect_check(s, ControllerConfig.model_validate(d["controller"]), d["window"],
-                                        d["connected"], net.timing.delay_samples, impl)
+                if d.get("announced"):  # the source's own forecast, judged against the window's Z^{r,in}
+                    reason, _ = layer.judge_announced(s, d["window"], d["connected"], tuple(d["Z_out"]["P"]),
+                                                      tuple(d["Z_out"]["Qdot"]), d.get("saturation", ""))
+                else:
+                    f = layer.connect_check(s, ControllerConfig.model_validate(d["controller"]), d["window"],
+                                            d["connected"], net.timing.delay_samples, impl)
+                    reason = f.reason
+                feasible = reason == ""
                 out["verdicts"] += 1
                 rig_refused = not d["accepted"] and d["reason"].startswith("the rig")
-                if (f.feasible != d["accepted"] and not rig_refused) or (not f.feasible and f.reason != d["reason"]):
+                if (feasible != d["accepted"] and not rig_refused) or (not feasible and reason != d["reason"]):
                     out["verdicts_differing"].append({"seq": verdict_seqs[vi], "source": d["source"],
                                                       "logged": [d["accepted"], d["reason"]],
-                                                      "replayed": [f.feasible, f.reason]})
+                                                      "replayed": [feasible, reason]})
             vi += 1
         rows = [per[n].get(k) for n in names]
         if any(r is None for r in rows):

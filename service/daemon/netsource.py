@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import sys
 import threading
+import time
 
 import zenoh
 
@@ -35,7 +36,9 @@ from service.core.source import ACTIVE, IDLE, MODES, SourceController
 from service.core.types import Sample
 from service.daemon.bus import key, latest, request
 from service.daemon.daemon import Daemon, _now_ns
+from service.daemon.forecast_worker import ForecastWorker, _worker_ready
 from service.daemon.neighbours import Neighbour
+from service.forecast import forecast_outgoing
 
 
 class NetworkSourceDaemon(Daemon):
@@ -63,6 +66,7 @@ class NetworkSourceDaemon(Daemon):
         self._next_request_t = -1.0  # sample time of the next connect request allowed
         self.handshake: dict = {"requests": 0, "last": None}
         self._asking = threading.Event()  # realtime: a request is under way in its thread
+        self._pool = None  # realtime: the process its plug-in forecast runs in (off the loop's GIL)
 
     # ---------------------------------------------------------------- setup
     def _extra_topics(self) -> dict:
@@ -89,6 +93,15 @@ class NetworkSourceDaemon(Daemon):
         self._by_id = {self.role.coordinator: self.alloc}
         self.alive_sub = s.liveliness().declare_subscriber(key(c.prefix, self.role.coordinator, "alive"),
                                                            zenoh.handlers.FifoChannel(64), history=True)
+        if self._connect_seq is not None and not c.loop.lockstep:  # started now: its imports cost a second of CPU
+            self._pool = ForecastWorker._new_pool()
+            self._pool.submit(_worker_ready)
+
+    def close(self) -> None:
+        super().close()
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
 
     # ---------------------------------------------------------------- inputs
     def _poll_neighbours(self, now: int) -> None:
@@ -207,21 +220,50 @@ class NetworkSourceDaemon(Daemon):
             threading.Thread(target=self._ask, args=(body,), name="connect", daemon=True).start()
 
     def _ask(self, body: dict) -> None:
+        """The plug-in handshake: ask what it would be asked to deliver over the current window (the offer), forecast
+        its own Z^{r,out} for that (service.forecast, as the offline layer does), announce it; the coordinator
+        checks it against the window's Z^{r,in} and has the rig close the breaker before it answers."""
         c = self.cfg
+        where = key(c.prefix, self.role.coordinator, "connect")
+        t0 = time.perf_counter()
+        forecast_ms = None
         try:
-            ok, reply = request(self.session, key(c.prefix, self.role.coordinator, "connect"), body, 5.0)
+            ok, reply = request(self.session, where, {**body, "offer": True}, 5.0)
+            if ok and reply.get("offer"):
+                t1 = time.perf_counter()
+                f = self._forecast(reply)
+                forecast_ms = (time.perf_counter() - t1) * 1e3
+                ok, reply = request(self.session, where, {
+                    **body, "window": reply["window"], "saturation": f.saturation,
+                    "Z_out": {"P": [f.P_lo, f.P_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]}}, 5.0)
+        except Exception as e:  # noqa: BLE001 - a bad offer or a broken forecast: a refusal it reports, not a crash
+            ok, reply = False, {"error": f"{type(e).__name__}: {e}"}
         finally:
             self._asking.clear()
         self.handshake["requests"] += 1
         self.handshake["last"] = {"t": body["t"], "accepted": bool(ok and reply.get("accepted")),
                                   "reason": reply.get("reason") or reply.get("error", ""),
-                                  "Z_out": reply.get("Z_out"), "Z_in": reply.get("Z_in")}
+                                  "Z_out": reply.get("Z_out"), "Z_in": reply.get("Z_in"),
+                                  "forecast_ms": forecast_ms, "handshake_ms": (time.perf_counter() - t0) * 1e3}
         if self.recorder is not None:
             self.recorder.offer(self.t_ev, body["t"], (body["t"], max(self._last_seq, 0), "connect",
                                                        json.dumps(self.handshake["last"])))
         if not self.handshake["last"]["accepted"]:
             print(f"energyctl[{c.id}]: connect refused: {self.handshake['last']['reason']}", file=sys.stderr,
                   flush=True)
+
+    def _forecast(self, offer: dict):
+        """Its Z^{r,out} for the offer (box W and W/s, tau' s, v_ref V, window s): the offline layer's forecast, here
+        (lockstep: in the tick; realtime: in its own process)."""
+        box = tuple(float(x) for x in offer["box"])
+        if len(box) != 4:
+            raise ValueError(f"offer.box: expected 4 numbers, got {len(box)}")
+        ctl = self.core.cfg.model_copy(update={"v_ref_V": float(offer["v_ref_V"])})
+        args = (ctl, self.cfg.model, self.period_s, self.cfg.delay_samples, box, float(offer["tau_prime_s"]))
+        kw = {"max_ramp_s": float(offer["window_s"]), "impl": self.cfg.core}
+        if self._pool is None:
+            return forecast_outgoing(*args, **kw)
+        return self._pool.submit(forecast_outgoing, *args, **kw).result(timeout=30)
 
     # ---------------------------------------------------------------- status
     def status(self) -> dict:

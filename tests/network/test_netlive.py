@@ -70,6 +70,11 @@ def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
             assert replay([str(p) for p in live.daemon_logs(s)], progress=False)["identical"], s
         rc = replay_coordinator(str(live.logs / "coordinator.mcap"))
         assert rc["identical"] and rc["verdicts"] == 1 and rc["samples"] == 1300, rc
+        # the plug-in was judged on the Z^{r,out} S3 forecast and announced itself
+        import json
+
+        co = json.loads((tmp_path / "run" / "coordinator.out").read_text().splitlines()[-1])
+        assert [(v["source"], v.get("announced"), v["accepted"]) for v in co["verdicts"]] == [("S3", True, True)]
         # the acceptance checks from the rig's log agree with those of the offline run
         assert [c["ok"] for c in acceptance_checks(rig)] == [c["ok"] for c in acceptance_checks(off)]
 
@@ -189,6 +194,10 @@ def test_bad_input_is_refused_by_name_and_the_network_goes_on(tmp_path, trip_sce
             ask = lambda k, body, raw=None: request(z, f"energyctl/{k}", body, 5.0)  # noqa: E731
             ok, r = ask("coordinator/connect", {"source": "S1", "at_seq": "x"})
             assert not ok and "at_seq" in r["error"]
+            for z_out, field in (({"P": [0.0, 1.0], "Qdot": [1.0, 0.0]}, "Z_out.Qdot"), ("big", "Z_out:"),
+                                 ({"P": [0.0, True], "Qdot": [0.0, 1.0]}, "Z_out.P")):  # an announced Z^{r,out}
+                ok, r = ask("coordinator/connect", {"source": "S2", "controller": {}, "Z_out": z_out})
+                assert not ok and field in r["error"], (z_out, r)
             ok, r = request(z, "energyctl/coordinator/connect", None, 5.0)  # no payload: no source named
             assert not ok and "source" in r["error"]
             z.get("energyctl/coordinator/connect", payload="[" * 100_000, timeout=5.0)  # deep JSON: answered
