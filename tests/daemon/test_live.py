@@ -495,12 +495,14 @@ s.close()
 
 
 def test_queries_are_answered_while_the_clock_loop_holds_its_rate(daemon_and_load):
-    """Status and config queries are served on their own thread: 60 of them at up to 100 a second from another
+    """Status and config queries are served on their own thread: 120 of them at up to 100 a second from another
     process, every one answered, while the 2 kHz clock loop keeps its periods. A period is either ticked or counted as
     an overrun, so ticks + overruns follow the clock; and the share of overruns while queries come is compared with
-    the same loop's in quiet windows of the same length alternated with them (on this machine a quiet 2 kHz loop
-    overruns 0.2-5 % of such a window's periods). From the daemon's own process, sharing its GIL, queries back to back
-    overran 7-31 % (README)."""
+    the same loop's in quiet windows of the same length alternated with them, pair by pair, by the median of the
+    differences: on this machine a quiet 2 kHz loop overruns 0.1-15 % of such a window's periods as the machine's
+    other tenants come and go, and one burst in three pairs once made the sums differ by 12 points (with two CPU
+    hogs beside it: 9.4 % with queries, 9.9 % without). From the daemon's own process, sharing its GIL, queries back
+    to back overran 7-31 % (README)."""
     import subprocess
     import sys
 
@@ -521,7 +523,7 @@ def test_queries_are_answered_while_the_clock_loop_holds_its_rate(daemon_and_loa
     answers, busy, quiet = [], [], []
     try:
         assert p.stdout.readline().strip() == "ready", p.stderr.read()
-        for _ in range(3):
+        for _ in range(6):
             def round_of_queries() -> None:
                 p.stdin.write("go\n")
                 p.stdin.flush()
@@ -532,13 +534,12 @@ def test_queries_are_answered_while_the_clock_loop_holds_its_rate(daemon_and_loa
     finally:
         p.kill()
         p.communicate(timeout=10)
-    assert sum(json.loads(a)["answered"] for a in answers) == 60
+    assert sum(json.loads(a)["answered"] for a in answers) == 120
     for ticks, over, periods in busy + quiet:
         assert ticks + over == pytest.approx(periods, rel=0.05, abs=3)  # the loop ran on its clock all along
-    share = [sum(w[1] for w in ws) / sum(w[2] for w in ws) for ws in (busy, quiet)]
-    # queries add less than 10 % of the periods to the overruns (on a noisy day the quiet windows overran 20 %, and
-    # pairs of windows differed by up to 11 points with or without queries)
-    assert share[0] <= share[1] + 0.10, (busy, quiet)
+    # queries add less than 5 % of the periods to the overruns (the median pair)
+    added = sorted(b[1] / b[2] - q[1] / q[2] for b, q in zip(busy, quiet, strict=True))
+    assert (added[2] + added[3]) / 2 <= 0.05, (busy, quiet)
 
 
 def test_a_config_set_changes_the_gain_from_the_next_tick_on(daemon_by_hand):
