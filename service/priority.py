@@ -82,7 +82,11 @@ def set_nice(target: int | None) -> str | None:
 
 def background(level: int) -> None:
     """Lower the calling process to nice ``level``, or stay where it is if that is lower already, and give it the
-    kernel's default timer slack back (its waits need not be punctual). Neither needs privilege."""
+    kernel's default timer slack back (its waits need not be punctual). Neither needs privilege. A process started
+    from a realtime one (chrt -f) inherits SCHED_FIFO, which nice does not touch: it goes back to SCHED_OTHER first
+    (a forecast worker importing for a second at FIFO starved its daemon's Zenoh threads until its token lapsed)."""
+    if hasattr(os, "sched_getscheduler") and os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     set_timer_slack(DEFAULT_TIMER_SLACK_NS)
     now = os.getpriority(os.PRIO_PROCESS, 0)
     if level > now:

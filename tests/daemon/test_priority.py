@@ -266,3 +266,21 @@ def test_filled_tuple_free_lists_keep_the_allocated_blocks_from_growing():
     lengths = len(priority.TUPLE_FREE_LIST_SIZES)
     assert grown("no") > 0.9 * lengths * priority.TUPLE_FREE_LIST_MAX  # the growth the fill takes up front
     assert abs(grown("fill")) < 100
+
+
+def test_a_background_process_started_from_a_realtime_one_leaves_sched_fifo():
+    """A daemon run under chrt -f starts its forecast worker: the worker inherits SCHED_FIFO, which nice does not
+    lower; background() puts it back to SCHED_OTHER (across hosts a worker importing at FIFO starved its daemon's
+    Zenoh threads until the daemon's liveliness token lapsed). Needs the right to set SCHED_FIFO; skips without."""
+    res = in_new_process(["import os",
+                          "from service.priority import background",
+                          "try:",
+                          "    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))",
+                          "except PermissionError:",
+                          "    print('no-rt'); raise SystemExit(0)",
+                          "assert os.sched_getscheduler(0) == os.SCHED_FIFO",
+                          "background(10)",
+                          "print(os.sched_getscheduler(0) == os.SCHED_OTHER, os.getpriority(os.PRIO_PROCESS, 0))"])
+    if res.stdout.strip() == "no-rt":
+        pytest.skip("no permission to set SCHED_FIFO here")
+    assert res.stdout.split() == ["True", "10"], res.stdout
