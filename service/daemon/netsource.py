@@ -93,9 +93,11 @@ class NetworkSourceDaemon(Daemon):
         self._by_id = {self.role.coordinator: self.alloc}
         self.alive_sub = s.liveliness().declare_subscriber(key(c.prefix, self.role.coordinator, "alive"),
                                                            zenoh.handlers.FifoChannel(64), history=True)
-        if self._connect_seq is not None and not c.loop.lockstep:  # started now: its imports cost a second of CPU
+        if self._connect_seq is not None and not c.loop.lockstep:
+            # started and waited for now, before the loop and its token: its imports cost a second of CPU, and a
+            # plug-in that came first waited for them (544 ms of a handshake)
             self._pool = ForecastWorker._new_pool()
-            self._pool.submit(_worker_ready)
+            self._pool.submit(_worker_ready).result(timeout=60)
 
     def close(self) -> None:
         super().close()
