@@ -23,7 +23,6 @@ rare and, in lockstep, must happen between two samples.
 from __future__ import annotations
 
 import json
-import math
 import sys
 import threading
 from collections import deque
@@ -36,8 +35,9 @@ from schemas.codec import ALLOC, GRID, LAYER_SRC, LAYER_TICK, DecodeError
 from schemas.netlive import CoordinatorConfig
 from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
+from service.core.feasibility import incoming_range
 from service.daemon.bus import key, open_session, publisher, queued, request
-from service.layer import InterconnectionLayer
+from service.layer import InterconnectionLayer, judge_announced
 from service.plant.network import NetworkPlant
 
 MAX_REQUEST_BYTES = 64 * 1024  # a connect request larger than this is refused unread
@@ -79,6 +79,7 @@ class Coordinator:
         self._alive_checked: Queue = Queue()
         self.v_nom = net.nominal_v_V
         self._connects: Queue = Queue()
+        self._offers: dict[str, tuple] = {}  # per source: the newest offer (window, box, tau'), until announced
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.session = None
@@ -305,16 +306,23 @@ class Coordinator:
         controller = controller.model_copy(update={"v_ref_V": self.layer.v_ref[s]})
         if body.get("offer"):  # the handshake's first step: what it would be asked for, to forecast against
             box, tau_p = self.layer.connect_offer(s, window, self.connected)
+            self._offers[name] = (window, box, tau_p)  # what its announcement is judged against
             self._answer(query, True, {"source": name, "offer": True, "window": window, "at_seq": at,
                                        "box": list(box), "tau_prime_s": tau_p, "v_ref_V": self.layer.v_ref[s],
                                        "window_s": self.layer.cfg.window_s})
             return
-        if announced is not None:  # its own forecast Z^{r,out}, checked against the current window's Z^{r,in}
+        if announced is not None:  # its own forecast Z^{r,out}, checked against the Z^{r,in} of the offer it had
             P_out, Qdot_out, saturation = announced
-            reason, z_in = self.layer.judge_announced(s, window, self.connected, P_out, Qdot_out, saturation)
-            reply = {"source": name, "accepted": reason == "", "reason": reason, "window": window, "at_seq": at,
+            offer = self._offers.pop(name, None)
+            if offer is None or body.get("window") != offer[0]:  # (realtime: the window may have moved on since)
+                offer = (window, *self.layer.connect_offer(s, window, self.connected))
+                reason, z_in = "no offer for the window it announced for: ask again", incoming_range(*offer[1:])
+            else:
+                reason, z_in = judge_announced(offer[1], offer[2], P_out, Qdot_out, saturation)
+            reply = {"source": name, "accepted": reason == "", "reason": reason, "window": offer[0], "at_seq": at,
                      "Z_out": {"P": list(P_out), "Qdot": list(Qdot_out)}, "saturation": saturation,
-                     "Z_in": {"P": list(z_in[:2]), "Qdot": list(z_in[2:])}, "announced": True}
+                     "Z_in": {"P": list(z_in[:2]), "Qdot": list(z_in[2:])}, "announced": True,
+                     "offer": {"box": list(offer[1]), "tau_prime_s": offer[2]}}
         else:  # a daemon that announces only its controller: the coordinator forecasts for it
             f = self.layer.connect_check(s, controller, window, self.connected, self.d, self.impl)
             reply = {"source": name, "accepted": f.feasible, "reason": f.reason, "window": window, "at_seq": at,
@@ -486,7 +494,7 @@ def announced_z_out(body: dict) -> tuple[tuple[float, float], tuple[float, float
     for part in ("P", "Qdot"):
         v = z.get(part)
         if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int | float) and not isinstance(x, bool)
-                                                              and math.isfinite(x) for x in v) and v[0] <= v[1]):
+                                                              and isfinite(x) for x in v) and v[0] <= v[1]):
             raise ValueError(f"Z_out.{part}: expected [lo, hi], two finite numbers, lo <= hi (got {v!r:.80})")
         out.append((float(v[0]), float(v[1])))
     saturation = body.get("saturation", "")

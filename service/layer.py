@@ -161,13 +161,14 @@ class InterconnectionLayer:
         return forecast_outgoing(controller, src.model_params(), self.T, delay_samples, box, tau_p,
                                  max_ramp_s=self.cfg.window_s, impl=impl)
 
-    def judge_announced(self, s: int, window: int, connected: list[bool], P_out: tuple[float, float],
-                        Qdot_out: tuple[float, float], saturation: str = "") -> tuple[str, tuple]:
-        """The plug-in check of an announced Z^{r,out} (P_out W, Qdot_out W/s, and the saturation its forecast met)
-        against source s's Z^{r,in} for window: (reason, "" if feasible; Z^{r,in})."""
-        box, tau_p = self.connect_offer(s, window, connected)
-        z_in = incoming_range(*box, tau_p)
-        return verdict(z_in, P_out, Qdot_out, saturation), z_in
+
+def judge_announced(box: tuple, tau_p: float, P_out: tuple[float, float], Qdot_out: tuple[float, float],
+                    saturation: str = "") -> tuple[str, tuple]:
+    """The plug-in check of an announced Z^{r,out} (P_out W, Qdot_out W/s, and the saturation its forecast met)
+    against the Z^{r,in} of the offer it was forecast for (box W and W/s, tau_p s; InterconnectionLayer.
+    connect_offer): (reason, "" if feasible; Z^{r,in})."""
+    z_in = incoming_range(*box, tau_p)
+    return verdict(z_in, P_out, Qdot_out, saturation), z_in
 
 
 def link_of(net: NetworkScenario, source: str) -> LinkConfig:

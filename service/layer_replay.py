@@ -9,7 +9,7 @@ from pathlib import Path
 
 from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
-from service.layer import InterconnectionLayer
+from service.layer import InterconnectionLayer, judge_announced
 from service.logio.reader import LogError, messages, scan
 from service.plant.network import NetworkPlant
 
@@ -61,9 +61,10 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
                 if "controller" not in d or d.get("reason") == "already connected" or d.get("checked") is False:
                     continue
                 s = names.index(d["source"])
-                if d.get("announced"):  # the source's own forecast, judged against the window's Z^{r,in}
-                    reason, _ = layer.judge_announced(s, d["window"], d["connected"], tuple(d["Z_out"]["P"]),
-                                                      tuple(d["Z_out"]["Qdot"]), d.get("saturation", ""))
+                if d.get("announced"):  # the source's own forecast, judged against the offer it was made for
+                    reason = d["reason"] if d["reason"].startswith("no offer") else judge_announced(
+                        tuple(d["offer"]["box"]), d["offer"]["tau_prime_s"], tuple(d["Z_out"]["P"]),
+                        tuple(d["Z_out"]["Qdot"]), d.get("saturation", ""))[0]
                 else:
                     f = layer.connect_check(s, ControllerConfig.model_validate(d["controller"]), d["window"],
                                             d["connected"], net.timing.delay_samples, impl)

@@ -5,6 +5,7 @@ two-source network regulates, with the CPU each process takes."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -84,6 +85,8 @@ def _bus_min_after(rig, t0: float) -> float:
 
 
 def plug_in(work: Path, realtime: bool, sets: list[str]) -> dict:
+    """S3's plug-in at 0.8 s; realtime runs to 2 s, time for a refused request to be asked again (0.5 s later)."""
+    sets = [*sets, "timing.duration_s=2.0"] if realtime else sets
     with LiveNetwork(DEMO, work / "plug-in", sets, realtime=realtime) as live:
         live.start()
         res = live.wait_rig(900)
@@ -94,7 +97,9 @@ def plug_in(work: Path, realtime: bool, sets: list[str]) -> dict:
         return {"asked_at_s": 0.8, "closed_at_s": None, "diverged": res["metrics"]["diverged"],
                 "logs": str(live.logs), "checks_failed": [c["check"] for c in acceptance_checks(rig) if not c["ok"]]}
     ev = evs[0]
+    hs = json.loads((live.workdir / "S3.status.json").read_text())["network"]["handshake"]
     return {"asked_at_s": 0.8, "closed_at_s": ev["t_s"], "handshake_s": ev["t_s"] - 0.8,
+            "requests": hs["requests"], "forecast_ms": (hs["last"] or {}).get("forecast_ms"),
             "bus_back_in_band_s": max(ev["bus_back_in_band_s"].values()) if None not in
             ev["bus_back_in_band_s"].values() else None, "inrush_A": ev.get("inrush_A"),
             "bus_move_V": max((ev.get("bus_move_V") or {}).values(), default=None),
@@ -183,7 +188,7 @@ def rate_run(work: Path, rate_hz: float, seconds: float) -> dict:
         res = live.wait_rig(600)
         live.close()
         rig = read_rig_log(str(live.logs / "rig.mcap"))
-        statuses = {s: __import__("json").loads((live.workdir / f"{s}.status.json").read_text())
+        statuses = {s: json.loads((live.workdir / f"{s}.status.json").read_text())
                     for s in ("S1", "S2")}
     wall = max(1e-9, t1 - t0)
     cpu = {n: 100.0 * (c1[n] - c0[n]) / wall for n in c1}
