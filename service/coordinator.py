@@ -6,11 +6,15 @@ buses' measured voltages, the loads' powers) and drives the same pure layer as t
 (P^{r,in} and its rate, the v_ref it last moved, the breaker, Z^{r,in} for the window); once per window it moves
 v_ref and sets the next window's ranges.
 
-* **Plug-in handshake** (PREFIX/ID/connect, JSON ``{"source", "controller", "at_seq"}``): the loop thread runs the
-  source's forecast for its share of the current window (the layer's ``connect_check``, with the v_ref the layer
-  holds for it) and only if Z^{r,out} is inside Z^{r,in} asks the rig to close its breaker (PREFIX/RIG/breaker),
-  then answers with the verdict, the reason and both ranges. In lockstep a request for sample k is answered after
-  sample k - 1 was fully processed, so the breaker closes at k as offline.
+* **Plug-in handshake** (PREFIX/ID/connect, JSON): an offer request (``{"source", "controller", "at_seq",
+  "offer": true}``) is answered with what the source would be asked to deliver over the current window (its share
+  of the window's load box, tau', the v_ref the layer holds for it; ``connect_offer``), kept per source; the
+  announcement (``"Z_out"``, ``"saturation"``: the source's own forecast for that box) is judged against that
+  offer's Z^{r,in}, refused if the offer is older than MAX_OFFER_AGE_WINDOWS windows or the breakers changed since,
+  and only if Z^{r,out} is inside Z^{r,in} the rig is asked to close the breaker (PREFIX/RIG/breaker); the answer
+  carries the verdict, the reason and both ranges. A request with neither (a peer that cannot forecast) gets the
+  coordinator's own forecast (``connect_check``). In lockstep a request for sample k is answered after sample
+  k - 1 was fully processed, so the breaker closes at k as offline.
 * **Trip on lost liveliness**: a connected source whose token PREFIX/SOURCE/alive disappears is tripped: the rig is
   asked to open its breaker, and from the sample that shows it open its share goes to the others.
 * **Coming back**: at start it asks each source's daemon for its config and resumes from the v_ref it reports; the
@@ -41,6 +45,9 @@ from service.layer import InterconnectionLayer, judge_announced
 from service.plant.network import NetworkPlant
 
 MAX_REQUEST_BYTES = 64 * 1024  # a connect request larger than this is refused unread
+# an offer is good for an announcement this many windows on (realtime: the source's forecast takes 30-350 ms on a
+# busy machine; the window's line-loss estimate moves meanwhile, but its load box must not have moved far)
+MAX_OFFER_AGE_WINDOWS = 10
 I_MAX_A = 10_000.0  # a grid sample's current beyond this (A) is refused, named
 P_MAX_W = 10_000_000.0  # a load's power beyond this (W) is refused, named
 
@@ -215,6 +222,7 @@ class Coordinator:
             self.counters["restarts"] += 1
             self.layer = InterconnectionLayer(self.net, self.layer.loads)
             self.seq = -1
+            self._offers.clear()  # made in the run that ended
         elif self.seq >= 0 and seq > self.seq + 1:
             self.counters["missing_samples"] += seq - self.seq - 1
         self._behind = 0
@@ -261,20 +269,29 @@ class Coordinator:
         """Answer the connect requests that are due: in lockstep one for sample k once sample k - 1 is done."""
         lockstep = self.cfg.lockstep
         held = []
-        while True:
-            try:
-                query, body = self._connects.get_nowait()
-            except Empty:
-                break
-            at = body.get("at_seq")
-            if lockstep and at is not None and self.seq < at - 1:
-                held.append((query, body))
-                continue
-            self._connect(query, body)
-        for item in held:
-            self._connects.put(item)
+        try:
+            while True:
+                try:
+                    query, body = self._connects.get_nowait()
+                except Empty:
+                    break
+                at = body.get("at_seq")
+                if lockstep and at is not None and self.seq < at - 1:
+                    held.append((query, body))
+                    continue
+                self._connect(query, body)
+        finally:  # a request that broke _connect must not take the waiting ones with it
+            for item in held:
+                self._connects.put(item)
 
     def _connect(self, query, body: dict) -> None:
+        try:
+            self._connect_checked(query, body)
+        except Exception as e:  # noqa: BLE001 - whatever a request does, it gets an answer and the loop goes on
+            self.last_reject = f"connect: {type(e).__name__}: {e}"[:300]
+            self._answer(query, False, {"error": self.last_reject})
+
+    def _connect_checked(self, query, body: dict) -> None:
         c = self.cfg
         self.counters["connect_requests"] += 1
         try:
@@ -284,7 +301,7 @@ class Coordinator:
             s = self.names.index(name)
             controller = ControllerConfig.model_validate(body.get("controller") or {})
             announced = None if body.get("Z_out") is None else announced_z_out(body)
-        except (ValueError, TypeError) as e:
+        except (ValueError, TypeError, OverflowError) as e:
             self._answer(query, False, {"error": str(e)})
             return
         at = body.get("at_seq")
@@ -306,7 +323,7 @@ class Coordinator:
         controller = controller.model_copy(update={"v_ref_V": self.layer.v_ref[s]})
         if body.get("offer"):  # the handshake's first step: what it would be asked for, to forecast against
             box, tau_p = self.layer.connect_offer(s, window, self.connected)
-            self._offers[name] = (window, box, tau_p)  # what its announcement is judged against
+            self._offers[name] = (window, box, tau_p, tuple(self.connected))  # its announcement is judged on this
             self._answer(query, True, {"source": name, "offer": True, "window": window, "at_seq": at,
                                        "box": list(box), "tau_prime_s": tau_p, "v_ref_V": self.layer.v_ref[s],
                                        "window_s": self.layer.cfg.window_s})
@@ -314,9 +331,12 @@ class Coordinator:
         if announced is not None:  # its own forecast Z^{r,out}, checked against the Z^{r,in} of the offer it had
             P_out, Qdot_out, saturation = announced
             offer = self._offers.pop(name, None)
-            if offer is None or body.get("window") != offer[0]:  # (realtime: the window may have moved on since)
+            if offer is None or offer[3] != tuple(self.connected) or window - offer[0] > MAX_OFFER_AGE_WINDOWS:
+                stale = "no offer" if offer is None else (
+                    "the breakers changed" if offer[3] != tuple(self.connected) else
+                    f"its offer is {window - offer[0]} windows old")
                 offer = (window, *self.layer.connect_offer(s, window, self.connected))
-                reason, z_in = "no offer for the window it announced for: ask again", incoming_range(*offer[1:])
+                reason, z_in = f"no current offer ({stale}): ask again", incoming_range(*offer[1], offer[2])
             else:
                 reason, z_in = judge_announced(offer[1], offer[2], P_out, Qdot_out, saturation)
             reply = {"source": name, "accepted": reason == "", "reason": reason, "window": offer[0], "at_seq": at,
@@ -484,6 +504,16 @@ class Coordinator:
 
 
 
+def _finite_number(x) -> bool:
+    """An int or float (not a bool) that is finite as a float (a 400-digit int is not: float() overflows)."""
+    if not isinstance(x, int | float) or isinstance(x, bool):
+        return False
+    try:
+        return isfinite(float(x))
+    except OverflowError:
+        return False
+
+
 def announced_z_out(body: dict) -> tuple[tuple[float, float], tuple[float, float], str]:
     """A connect request's announced Z^{r,out}: ((P lo, P hi) W, (Qdot lo, Qdot hi) W/s, the saturation its
     forecast met); ValueError naming the field that is not two finite numbers in order, or not text."""
@@ -493,8 +523,7 @@ def announced_z_out(body: dict) -> tuple[tuple[float, float], tuple[float, float
     out = []
     for part in ("P", "Qdot"):
         v = z.get(part)
-        if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int | float) and not isinstance(x, bool)
-                                                              and isfinite(x) for x in v) and v[0] <= v[1]):
+        if not (isinstance(v, list) and len(v) == 2 and all(_finite_number(x) for x in v) and v[0] <= v[1]):
             raise ValueError(f"Z_out.{part}: expected [lo, hi], two finite numbers, lo <= hi (got {v!r:.80})")
         out.append((float(v[0]), float(v[1])))
     saturation = body.get("saturation", "")

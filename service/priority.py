@@ -80,13 +80,49 @@ def set_nice(target: int | None) -> str | None:
     return None
 
 
+def leave_realtime() -> None:
+    """The calling thread back to SCHED_OTHER if it runs SCHED_FIFO or SCHED_RR (lowering needs no privilege;
+    where the system has no such call or refuses, it stays as it is)."""
+    if not hasattr(os, "sched_getscheduler"):
+        return
+    try:
+        if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass
+
+
+def in_normal_thread(fn):
+    """fn() run in a new thread at SCHED_OTHER, its result returned (its exception raised): a process spawned
+    from there starts at SCHED_OTHER whatever the caller runs at (Linux keeps the policy per thread, and a child
+    inherits its forking thread's). A forecast worker spawned from a daemon under chrt -f imported for a second at
+    FIFO and starved the daemon's Zenoh threads until its token lapsed."""
+    import threading
+
+    out: list = []
+
+    def run() -> None:
+        leave_realtime()
+        try:
+            out.append((True, fn()))
+        except BaseException as e:  # noqa: BLE001 - handed to the caller
+            out.append((False, e))
+
+    t = threading.Thread(target=run, name="normal-priority", daemon=True)
+    t.start()
+    t.join()
+    ok, value = out[0]
+    if not ok:
+        raise value
+    return value
+
+
 def background(level: int) -> None:
     """Lower the calling process to nice ``level``, or stay where it is if that is lower already, and give it the
-    kernel's default timer slack back (its waits need not be punctual). Neither needs privilege. A process started
-    from a realtime one (chrt -f) inherits SCHED_FIFO, which nice does not touch: it goes back to SCHED_OTHER first
-    (a forecast worker importing for a second at FIFO starved its daemon's Zenoh threads until its token lapsed)."""
-    if hasattr(os, "sched_getscheduler") and os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    kernel's default timer slack back (its waits need not be punctual); none of it needs privilege. A process
+    started from a realtime one (chrt -f) inherits SCHED_FIFO, which nice does not touch: it is put back to
+    SCHED_OTHER too (start such processes from ``in_normal_thread``: this runs only once the child is up)."""
+    leave_realtime()
     set_timer_slack(DEFAULT_TIMER_SLACK_NS)
     now = os.getpriority(os.PRIO_PROCESS, 0)
     if level > now:

@@ -5,11 +5,23 @@ from __future__ import annotations
 
 from schemas.scenario import CircuitParams, ControllerConfig
 from service.forecast import OutgoingForecast, forecast_outgoing, widen_to_grid
-from service.priority import FORECAST_NICE, background
+from service.priority import FORECAST_NICE, background, in_normal_thread, leave_realtime
 
 
 def _worker_ready() -> bool:
     return True
+
+
+def start_background_pool():
+    """One worker process at background priority, started from a normal-priority thread (service.priority.
+    in_normal_thread) and waited for until it has imported everything (about 1 s of CPU: better before a loop runs
+    than during it)."""
+    def start():
+        pool = ForecastWorker._new_pool()
+        pool.submit(_worker_ready).result(timeout=60)
+        return pool
+
+    return in_normal_thread(start)
 
 
 class ForecastWorker:
@@ -43,8 +55,7 @@ class ForecastWorker:
     def start(self) -> None:
         """Start the worker process and wait until it has imported everything (about 1 s of CPU: better before
         the loop runs than during its first window)."""
-        self._pool = self._new_pool()
-        self._pool.submit(_worker_ready).result(timeout=60)
+        self._pool = start_background_pool()
         self._thread.start()
 
     @staticmethod
@@ -87,6 +98,8 @@ class ForecastWorker:
 
         from service.core.control import effective_gain
         from service.core.feasibility import tau_prime
+
+        leave_realtime()  # a new worker after a broken one is spawned from this thread: not at the loop's FIFO
 
         while not self._stop:
             self._ev.wait()

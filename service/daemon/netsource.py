@@ -11,8 +11,9 @@ What differs from a single component's daemon (service.daemon.daemon):
   back as the offline design does;
 * the line ends at its terminal (PREFIX/LINE/z/ID) are its neighbours: shown in status and logged, not followed;
 * the plug-in handshake: from ``network.connect_at_s`` on, while its breaker is open, it asks the coordinator
-  (PREFIX/COORDINATOR/connect, announcing its controller); the coordinator checks the source's forecast Z^{r,out}
-  against its share of the window and only then has the rig close its breaker. In lockstep the request is made
+  (PREFIX/COORDINATOR/connect) for its offer (its share of the window's load box), forecasts its own Z^{r,out} for
+  that and announces it; the coordinator checks it against the offer's Z^{r,in} and only then has the rig close
+  its breaker. In lockstep the request is made
   inside the tick before its answer goes out (the rig waits for that answer, so the breaker closes at the next
   sample, as offline); in realtime a thread makes it and the loop goes on.
 
@@ -36,7 +37,7 @@ from service.core.source import ACTIVE, IDLE, MODES, SourceController
 from service.core.types import Sample
 from service.daemon.bus import key, latest, request
 from service.daemon.daemon import Daemon, _now_ns
-from service.daemon.forecast_worker import ForecastWorker, _worker_ready
+from service.daemon.forecast_worker import start_background_pool
 from service.daemon.neighbours import Neighbour
 from service.forecast import forecast_outgoing
 
@@ -96,8 +97,7 @@ class NetworkSourceDaemon(Daemon):
         if self._connect_seq is not None and not c.loop.lockstep:
             # started and waited for now, before the loop and its token: its imports cost a second of CPU, and a
             # plug-in that came first waited for them (544 ms of a handshake)
-            self._pool = ForecastWorker._new_pool()
-            self._pool.submit(_worker_ready).result(timeout=60)
+            self._pool = start_background_pool()
 
     def close(self) -> None:
         super().close()
@@ -224,13 +224,16 @@ class NetworkSourceDaemon(Daemon):
     def _ask(self, body: dict) -> None:
         """The plug-in handshake: ask what it would be asked to deliver over the current window (the offer), forecast
         its own Z^{r,out} for that (service.forecast, as the offline layer does), announce it; the coordinator
-        checks it against the window's Z^{r,in} and has the rig close the breaker before it answers."""
+        checks it against the offer's Z^{r,in} and has the rig close the breaker before it answers. Whatever goes
+        wrong (no answer, a reply that is not an object, a broken forecast) is a refusal it reports and retries."""
         c = self.cfg
         where = key(c.prefix, self.role.coordinator, "connect")
         t0 = time.perf_counter()
         forecast_ms = None
         try:
             ok, reply = request(self.session, where, {**body, "offer": True}, 5.0)
+            if not isinstance(reply, dict):
+                raise ValueError(f"the offer's reply: expected an object, got {type(reply).__name__}")
             if ok and reply.get("offer"):
                 t1 = time.perf_counter()
                 f = self._forecast(reply)
@@ -238,6 +241,8 @@ class NetworkSourceDaemon(Daemon):
                 ok, reply = request(self.session, where, {
                     **body, "window": reply["window"], "saturation": f.saturation,
                     "Z_out": {"P": [f.P_lo, f.P_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]}}, 5.0)
+                if not isinstance(reply, dict):
+                    raise ValueError(f"the verdict's reply: expected an object, got {type(reply).__name__}")
         except Exception as e:  # noqa: BLE001 - a bad offer or a broken forecast: a refusal it reports, not a crash
             ok, reply = False, {"error": f"{type(e).__name__}: {e}"}
         finally:
@@ -265,7 +270,12 @@ class NetworkSourceDaemon(Daemon):
         kw = {"max_ramp_s": float(offer["window_s"]), "impl": self.cfg.core}
         if self._pool is None:
             return forecast_outgoing(*args, **kw)
-        return self._pool.submit(forecast_outgoing, *args, **kw).result(timeout=30)
+        try:
+            return self._pool.submit(forecast_outgoing, *args, **kw).result(timeout=30)
+        except Exception:  # a worker killed or stuck: a new one for the next request (this one is refused)
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = start_background_pool()
+            raise
 
     # ---------------------------------------------------------------- status
     def status(self) -> dict:

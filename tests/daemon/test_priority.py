@@ -268,19 +268,26 @@ def test_filled_tuple_free_lists_keep_the_allocated_blocks_from_growing():
     assert abs(grown("fill")) < 100
 
 
-def test_a_background_process_started_from_a_realtime_one_leaves_sched_fifo():
-    """A daemon run under chrt -f starts its forecast worker: the worker inherits SCHED_FIFO, which nice does not
-    lower; background() puts it back to SCHED_OTHER (across hosts a worker importing at FIFO starved its daemon's
-    Zenoh threads until the daemon's liveliness token lapsed). Needs the right to set SCHED_FIFO; skips without."""
-    res = in_new_process(["import os",
-                          "from service.priority import background",
+def test_a_background_process_started_from_a_realtime_one_starts_and_stays_off_sched_fifo():
+    """A daemon run under chrt -f starts its forecast worker: a child inherits its forking thread's SCHED_FIFO,
+    which nice does not lower (across hosts a worker importing for a second at FIFO starved its daemon's Zenoh
+    threads until the daemon's liveliness token lapsed). Spawned from in_normal_thread it starts at SCHED_OTHER;
+    spawned directly it starts at FIFO (what this guards against); background() leaves FIFO too. Needs the right to
+    set SCHED_FIFO; skips without."""
+    child = "import os; print(os.sched_getscheduler(0))"
+    res = in_new_process(["import os, subprocess, sys",
+                          "from service.priority import background, in_normal_thread",
                           "try:",
                           "    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))",
                           "except PermissionError:",
                           "    print('no-rt'); raise SystemExit(0)",
-                          "assert os.sched_getscheduler(0) == os.SCHED_FIFO",
+                          f"run = lambda: subprocess.run([sys.executable, '-c', {child!r}], capture_output=True, "
+                          "text=True).stdout.strip()",
+                          "print(run(), in_normal_thread(run), os.sched_getscheduler(0))",
                           "background(10)",
                           "print(os.sched_getscheduler(0) == os.SCHED_OTHER, os.getpriority(os.PRIO_PROCESS, 0))"])
     if res.stdout.strip() == "no-rt":
         pytest.skip("no permission to set SCHED_FIFO here")
-    assert res.stdout.split() == ["True", "10"], res.stdout
+    direct, normal, caller, *after = res.stdout.split()
+    assert (int(direct), int(normal), int(caller)) == (os.SCHED_FIFO, os.SCHED_OTHER, os.SCHED_FIFO), res.stdout
+    assert after == ["True", "10"], res.stdout
