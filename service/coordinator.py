@@ -12,9 +12,9 @@ v_ref and sets the next window's ranges.
   announcement (``"Z_out"``, ``"saturation"``: the source's own forecast for that box) is judged against that
   offer's Z^{r,in}, refused if the offer is older than MAX_OFFER_AGE_WINDOWS windows or the breakers changed since,
   and only if Z^{r,out} is inside Z^{r,in} the rig is asked to close the breaker (PREFIX/RIG/breaker); the answer
-  carries the verdict, the reason and both ranges. A request with neither (a peer that cannot forecast) gets the
-  coordinator's own forecast (``connect_check``). In lockstep a request for sample k is answered after sample
-  k - 1 was fully processed, so the breaker closes at k as offline.
+  carries the verdict, the reason and both ranges; a request with neither is refused (no forecast runs on the
+  loop thread for a peer). In lockstep a request for sample k is answered after sample k - 1 was fully processed,
+  so the breaker closes at k as offline.
 * **Trip on lost liveliness**: a connected source whose token PREFIX/SOURCE/alive disappears is tripped: the rig is
   asked to open its breaker, and from the sample that shows it open its share goes to the others.
 * **Coming back**: at start it asks each source's daemon for its config and resumes from the v_ref it reports; the
@@ -343,12 +343,10 @@ class Coordinator:
                      "Z_out": {"P": list(P_out), "Qdot": list(Qdot_out)}, "saturation": saturation,
                      "Z_in": {"P": list(z_in[:2]), "Qdot": list(z_in[2:])}, "announced": True,
                      "offer": {"box": list(offer[1]), "tau_prime_s": offer[2]}}
-        else:  # a daemon that announces only its controller: the coordinator forecasts for it
-            f = self.layer.connect_check(s, controller, window, self.connected, self.d, self.impl)
-            reply = {"source": name, "accepted": f.feasible, "reason": f.reason, "window": window, "at_seq": at,
-                     "Z_out": {"P": [f.P_lo, f.P_hi], "P_dot": [f.P_dot_lo, f.P_dot_hi],
-                               "Qdot": [f.Qdot_lo, f.Qdot_hi]},
-                     "Z_in": {"P": list(f.z_in[:2]), "Qdot": list(f.z_in[2:])}}
+        else:  # no forecast of its own: none is run for it here (that would take the loop thread 30-350 ms)
+            self._answer(query, False, {"error": "Z_out: announce the Z^{r,out} you forecast for an offer (ask with "
+                                                 "\"offer\": true first)"})
+            return
         if reply["accepted"]:
             ok, r = request(self.session, key(c.prefix, c.rig, "breaker"),
                             {"target": name, "closed": True, "at_seq": at, "by": c.id}, 5.0)

@@ -109,3 +109,10 @@ def test_a_request_that_breaks_the_check_gets_an_error_and_the_held_ones_survive
     co._take_connects()
     assert bad.got[0] == "err" and "ZeroDivisionError" in bad.got[1]["error"]
     assert held.got is None and co._connects.qsize() == 1
+
+
+def test_a_request_without_a_forecast_of_its_own_is_refused_by_name_without_running_one(co, monkeypatch):
+    """No forecast runs on the coordinator's loop thread for a peer that announces none (30-350 ms of it)."""
+    monkeypatch.setattr(co.layer, "connect_check", lambda *a, **k: pytest.fail("a forecast ran on the loop"))
+    kind, r = ask(co, {"source": "S3", "controller": co.net.sources["S3"].controller.model_dump()})
+    assert kind == "err" and "Z_out" in r["error"] and not co.verdicts, r
