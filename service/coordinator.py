@@ -86,7 +86,8 @@ class Coordinator:
         self._alive_checked: Queue = Queue()
         self.v_nom = net.nominal_v_V
         self._connects: Queue = Queue()
-        self._offers: dict[str, tuple] = {}  # per source: the newest offer (window, box, tau'), until announced
+        # per source: the newest offer (window, box, tau', the breakers then), until announced
+        self._offers: dict[str, tuple] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.session = None
@@ -499,7 +500,6 @@ class Coordinator:
     def _event(self, t: float, seq: int, kind: str, detail: dict) -> None:
         if self.recorder is not None:
             self.recorder.offer(self.t_ev, t, (t, max(seq, 0), kind, json.dumps(detail)))
-
 
 
 def _finite_number(x) -> bool:

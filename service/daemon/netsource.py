@@ -239,7 +239,7 @@ class NetworkSourceDaemon(Daemon):
                 f = self._forecast(reply)
                 forecast_ms = (time.perf_counter() - t1) * 1e3
                 ok, reply = request(self.session, where, {
-                    **body, "window": reply["window"], "saturation": f.saturation,
+                    **body, "saturation": f.saturation,
                     "Z_out": {"P": [f.P_lo, f.P_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]}}, 5.0)
                 if not isinstance(reply, dict):
                     raise ValueError(f"the verdict's reply: expected an object, got {type(reply).__name__}")

@@ -57,8 +57,8 @@ def announcement(c: Coordinator) -> dict:
     ctl = src.controller.model_copy(update={"v_ref_V": offer["v_ref_V"]})
     f = forecast_outgoing(ctl, src.model_params(), 1e-3, c.d, tuple(offer["box"]), offer["tau_prime_s"],
                           max_ramp_s=offer["window_s"])
-    return {"source": "S3", "controller": src.controller.model_dump(), "window": offer["window"],
-            "saturation": f.saturation, "Z_out": {"P": [f.P_lo, f.P_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]}}
+    return {"source": "S3", "controller": src.controller.model_dump(), "saturation": f.saturation,
+            "Z_out": {"P": [f.P_lo, f.P_hi], "Qdot": [f.Qdot_lo, f.Qdot_hi]}}
 
 
 def test_an_announcement_within_its_offer_s_time_is_accepted_and_an_old_one_refused(co):
