@@ -98,3 +98,116 @@ class PumpingClient:
             except TimeoutError:
                 return pred()
         return True
+
+
+# ---- a hung test must fail the run with its stacks, not hold CI until its time limit ----------------------------
+# CI once ran out of its 90 minutes with nothing printed after the 40th test (pytest's output to a pipe is
+# block-buffered, so the rest was lost with the process). Every test now gets TEST_TIMEOUT_S: past it the stacks of
+# every thread and the processes the run started are printed, those processes killed, and pytest exits 3. The
+# progress is flushed after each test, so CI's log shows how far the run came.
+
+TEST_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_TIMEOUT_S", "600"))
+EXIT_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_EXIT_TIMEOUT_S", "120"))  # from the end of the session to the interpreter's exit (leftover threads, pools, queues)
+
+
+def _descendants() -> list[tuple[int, str]]:
+    """(pid, command line) of every live process below this one (from /proc; [] where there is none)."""
+    import os
+
+    me, children = os.getpid(), {}
+    for d in os.listdir("/proc") if os.path.isdir("/proc") else ():
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat", "rb") as f:
+                ppid = int(f.read().rsplit(b")", 1)[1].split()[1])
+            with open(f"/proc/{d}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(ppid, []).append((int(d), cmd))
+    out, todo = [], [me]
+    while todo:
+        for pid, cmd in children.get(todo.pop(), ()):
+            out.append((pid, cmd))
+            todo.append(pid)
+    return out
+
+
+_STDERR_FD: list[int] = []  # a dup of the terminal's stderr, taken before any test captures fd 2
+
+
+def pytest_configure(config):
+    import os
+
+    _STDERR_FD.append(os.dup(2))
+
+
+def _say(text: str) -> None:
+    import os
+
+    os.write(_STDERR_FD[0] if _STDERR_FD else 2, text.encode(errors="replace"))
+
+
+def _report_and_kill(what: str) -> None:
+    """Stacks of every thread and the process tree below this one to the terminal's stderr; those processes
+    killed (one left running would hold CI's output pipe open after pytest is gone)."""
+    import faulthandler
+    import os
+    import signal
+
+    _say(f"\n\n===== {what}: stacks of every thread =====\n")
+    faulthandler.dump_traceback(file=_STDERR_FD[0] if _STDERR_FD else 2, all_threads=True)
+    procs = _descendants()
+    _say(f"===== processes this run started and left running: {len(procs)} =====\n")
+    for pid, cmd in procs:
+        _say(f"  {pid}: {cmd[:300]}\n")
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    import faulthandler
+    import os
+    import sys
+    import threading
+
+    done = threading.Event()
+
+    def watch() -> None:
+        if done.wait(TEST_TIMEOUT_S):
+            return
+        _report_and_kill(f"{item.nodeid} still running after {TEST_TIMEOUT_S:.0f} s")
+        try:
+            sys.stdout.flush()
+        finally:
+            os._exit(3)
+
+    threading.Thread(target=watch, name="test-watchdog", daemon=True).start()
+    # the stacks from C, in case the hung call holds the GIL (the thread above then never runs)
+    faulthandler.dump_traceback_later(TEST_TIMEOUT_S + 30, exit=True, file=_STDERR_FD[0] if _STDERR_FD else 2)
+    try:
+        yield
+    finally:
+        done.set()
+        faulthandler.cancel_dump_traceback_later()
+        item.config.get_terminal_writer().flush()
+
+
+def pytest_unconfigure(config):
+    """After the summary: say what is still running (it would hold the interpreter's exit), and arm a last timer
+    that dumps the stacks and exits 3 if the exit itself hangs."""
+    import faulthandler
+    import sys
+    import threading
+
+    alive = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
+    procs = [(p, c) for p, c in _descendants() if "resource_tracker" not in c]  # that one ends with us
+    if alive or procs:
+        _say("\nleft running at the end of the tests (the exit waits for them): "
+             f"threads {[t.name for t in alive]}, processes {[(p, c[:120]) for p, c in procs]}\n")
+    sys.stdout.flush()
+    faulthandler.dump_traceback_later(EXIT_TIMEOUT_S, exit=True, file=_STDERR_FD[0] if _STDERR_FD else 2)
