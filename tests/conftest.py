@@ -107,7 +107,8 @@ class PumpingClient:
 # progress is flushed after each test, so CI's log shows how far the run came.
 
 TEST_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_TIMEOUT_S", "600"))
-EXIT_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_EXIT_TIMEOUT_S", "120"))  # from the end of the session to the interpreter's exit (leftover threads, pools, queues)
+# from the end of the session to the interpreter's exit (leftover threads, pools, queues)
+EXIT_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_EXIT_TIMEOUT_S", "120"))
 
 
 def _descendants() -> list[tuple[int, str]]:
