@@ -284,7 +284,8 @@ class Bridge(Served):
         self._glock = threading.Lock()  # nodes and _graph; never held by an SDK callback (see _listener)
         self._alive_sub = None
         self._watcher: threading.Thread | None = None
-        self.graph_subscribed = threading.Event()  # a Foxglove client follows the graph (the SDK's hooks)
+        self._graph_held = threading.Event()  # the SDK took the bridge's own graph subscription (GraphHold)
+        self._hold: GraphHold | None = None
         self.graph_counts = {"tokens_seen": 0, "tokens_gone": 0, "status_unanswered": 0, "graph_updates": 0}
 
     # ------------------------------------------------------------------------------------------------ life cycle
@@ -313,6 +314,10 @@ class Bridge(Served):
                 name="energyctl", host=self.host, port=self._port, context=self.context,
                 capabilities=[Capability.Parameters, Capability.Services, Capability.ConnectionGraph],
                 server_listener=_listener(self), supported_encodings=["json"], services=self._services())
+            self._hold = GraphHold(self.host, self.server.port)  # before any publish (see GraphHold)
+            if not self._graph_held.wait(GraphHold.TIMEOUT_S):
+                raise RuntimeError(f"the Foxglove server on port {self.server.port} did not take the bridge's own "
+                                   f"connection-graph subscription within {GraphHold.TIMEOUT_S:g} s")
             self._publish_graph()  # empty until the tokens come: what a client subscribing now is sent
             # the tokens, those already declared first (history); a channel read by the graph thread, no Python
             # callback (dropping one at close can deadlock zenoh-python against the GIL)
@@ -349,8 +354,11 @@ class Bridge(Served):
                 pass
         self._subs = []
         if self.server is not None:
-            self.server.stop()
+            self.server.stop()  # with the GIL released: the SDK calls the listener as the hold's connection ends
             self.server = None
+        if self._hold is not None:
+            self._hold.close()
+            self._hold = None
         for s in self.streams:
             s.channel.close()
         if self.session is not None:
@@ -372,7 +380,7 @@ class Bridge(Served):
         with self._glock:
             graph = {"live": {c: {"controller": n.controller, "neighbours": list(n.neighbours)}
                               for c, n in sorted(self.nodes.items())},
-                     "subscribed": self.graph_subscribed.is_set(), **self.graph_counts}
+                     "held": self._graph_held.is_set(), **self.graph_counts}
         return {"port": self.port, "components": self.ids, "rate_hz": self.rate_hz, "channels": channels,
                 "received": sum(c["received"] for c in channels.values()),
                 "logged": sum(c["logged"] for c in channels.values()),
@@ -600,6 +608,81 @@ class Bridge(Served):
         return handle
 
 
+class GraphHold:
+    """The bridge's own WebSocket connection to its Foxglove server, subscribed to the connection graph from the
+    server's start to its stop, so that no Foxglove client's subscription is ever the first, nor its leaving the
+    last.
+
+    Why: foxglove-sdk (0.30) calls the listener's on_connection_graph_subscribe (first subscriber) and
+    on_connection_graph_unsubscribe (last one gone) while holding its graph lock, and those are Python: they wait
+    for the GIL. ``publish_connection_graph`` takes the same lock without releasing the GIL. A client subscribing
+    while the graph thread published deadlocked the whole bridge (the bridge's graph test hung CI for 90 minutes;
+    reproduced here in 1 of 9 runs). With this subscription taken before the first publish and kept until the
+    server has stopped, the SDK never calls Python under that lock while anything publishes.
+
+    The few lines of RFC 6455 a client needs: the upgrade request, one masked text frame; whatever the server
+    sends (its info, advertisements, graph updates) is read and dropped by a thread of its own."""
+
+    TIMEOUT_S = 5.0
+
+    def __init__(self, host: str, port: int):
+        import base64
+        import os
+        import socket
+
+        host = "127.0.0.1" if host in ("", "0.0.0.0") else "::1" if host == "::" else host
+        self.sock = socket.create_connection((host, port), timeout=self.TIMEOUT_S)
+        try:
+            ws_key = base64.b64encode(os.urandom(16)).decode()
+            self.sock.sendall(f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+                              f"Connection: Upgrade\r\nSec-WebSocket-Key: {ws_key}\r\nSec-WebSocket-Version: 13\r\n"
+                              "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n".encode())
+            head = b""
+            while b"\r\n\r\n" not in head:
+                chunk = self.sock.recv(4096)
+                if not chunk:
+                    raise ConnectionError("the Foxglove server closed the bridge's own connection in its handshake")
+                head += chunk
+            status = head.split(b"\r\n", 1)[0]
+            if status.split(b" ")[1:2] != [b"101"]:
+                raise ConnectionError(f"the Foxglove server refused the bridge's own connection: {status.decode()!r}")
+            self.sock.sendall(self.text_frame(json.dumps({"op": "subscribeConnectionGraph"}).encode()))
+            self.sock.settimeout(None)
+        except BaseException:
+            self.sock.close()
+            raise
+        self._thread = threading.Thread(target=self._drain, name="foxglove-graph-hold", daemon=True)
+        self._thread.start()
+
+    @staticmethod
+    def text_frame(payload: bytes) -> bytes:
+        """One final text frame, masked as a client's must be (RFC 6455, 5.2)."""
+        import os
+        import struct
+
+        n = len(payload)
+        head = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n))
+        mask = os.urandom(4)
+        return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+
+    def _drain(self) -> None:
+        try:
+            while self.sock.recv(65536):
+                pass
+        except OSError:  # closed
+            pass
+
+    def close(self) -> None:
+        import socket
+
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)  # wakes the drain thread's recv
+        except OSError:
+            pass
+        self.sock.close()
+        self._thread.join(self.TIMEOUT_S)
+
+
 def _listener(bridge: Bridge):
     """A foxglove.websocket.ServerListener for the bridge's parameters. The SDK calls these on the asking client's
     connection task: that client's stream waits until they return (a set: until the daemon answers, normally within
@@ -619,11 +702,12 @@ def _listener(bridge: Bridge):
         def on_parameters_unsubscribe(self, param_names):
             bridge.subscribe_parameters(list(param_names), False)
 
-        # the SDK sends a new subscriber the graph as last published; publishing from here would deadlock it
+        # called only for the first subscriber and after the last: the bridge's own (GraphHold); publishing from
+        # here would deadlock the SDK
         def on_connection_graph_subscribe(self):
-            bridge.graph_subscribed.set()
+            bridge._graph_held.set()
 
         def on_connection_graph_unsubscribe(self):
-            bridge.graph_subscribed.clear()
+            bridge._graph_held.clear()
 
     return Listener()
