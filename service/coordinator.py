@@ -40,7 +40,7 @@ from schemas.netlive import CoordinatorConfig
 from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
 from service.core.feasibility import incoming_range
-from service.daemon.bus import key, open_session, publisher, queued, request
+from service.daemon.bus import answer, key, open_session, publisher, queued, request, serve_queries
 from service.layer import InterconnectionLayer, judge_announced
 from service.plant.network import NetworkPlant
 
@@ -436,43 +436,33 @@ class Coordinator:
 
     # ---------------------------------------------------------------- queries (their own threads)
     def _serve(self, leaf: str) -> None:
-        q = self.queryables[leaf]
         own = key(self.cfg.prefix, self.cfg.id, leaf)
-        while True:
-            try:
-                query = q.recv()
-            except Exception:  # noqa: BLE001 - channel closed at shutdown
-                return
-            try:
-                if leaf == "connect":
-                    raw = query.payload.to_bytes() if query.payload is not None else b"{}"
-                    if len(raw) > MAX_REQUEST_BYTES:
-                        raise ValueError(f"{len(raw)} bytes, more than {MAX_REQUEST_BYTES}")
-                    body = json.loads(raw)
-                    if not isinstance(body, dict):
-                        raise ValueError("expected a JSON object {\"source\", \"controller\", \"at_seq\"}")
-                    at = body.get("at_seq")
-                    if at is not None and (type(at) is not int or at < 0):
-                        raise ValueError(f"at_seq: expected a sample number or null, got {at!r}")
-                    if at is not None and at > self.seq + 2 * self.layer.per_window + 1 and self.seq >= 0:
-                        raise ValueError(f"at_seq: {at} is more than two windows ahead of sample {self.seq}")
-                    self._connects.put((query, body))  # the loop thread answers (and drops) it
-                    continue
-                self._answer(query, True, self.status(), own)
-            except Exception as e:  # noqa: BLE001 - RecursionError from deep JSON too: answered, counted
-                self._reject(f"{leaf}: {type(e).__name__}: {e}"[:300])
-                self._answer(query, False, {"error": f"{leaf}: {e}"[:300]})
 
-    def _answer(self, query, ok: bool, body: dict, own: str | None = None) -> None:
-        try:
-            if ok:
-                query.reply(own or key(self.cfg.prefix, self.cfg.id, "connect"), json.dumps(body))
-            else:
-                query.reply_err(json.dumps(body))
-        except Exception:  # noqa: BLE001 - the asker went away
-            pass
-        finally:
-            query.drop()
+        def handle(query):
+            if leaf != "connect":
+                return True, self.status()
+            raw = query.payload.to_bytes() if query.payload is not None else b"{}"
+            if len(raw) > MAX_REQUEST_BYTES:
+                raise ValueError(f"{len(raw)} bytes, more than {MAX_REQUEST_BYTES}")
+            body = json.loads(raw)
+            if not isinstance(body, dict):
+                raise ValueError("expected a JSON object {\"source\", \"controller\", \"at_seq\"}")
+            at = body.get("at_seq")
+            if at is not None and (type(at) is not int or at < 0):
+                raise ValueError(f"at_seq: expected a sample number or null, got {at!r}")
+            if at is not None and at > self.seq + 2 * self.layer.per_window + 1 and self.seq >= 0:
+                raise ValueError(f"at_seq: {at} is more than two windows ahead of sample {self.seq}")
+            self._connects.put((query, body))  # the loop thread answers (and drops) it
+            return None
+
+        def refused(e: Exception) -> str:
+            self._reject(f"{leaf}: {type(e).__name__}: {e}"[:300])
+            return f"{leaf}: {e}"[:300]
+
+        serve_queries(self.queryables[leaf], own, handle, refused)
+
+    def _answer(self, query, ok: bool, body: dict) -> None:
+        answer(query, ok, body, key(self.cfg.prefix, self.cfg.id, "connect"))
 
     def status(self) -> dict:
         layer, net, zin, connected = self.layer, self.net, list(self.zin), list(self.connected)

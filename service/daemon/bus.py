@@ -197,6 +197,37 @@ def latest(session: zenoh.Session, key_expr: str, newest: int = 1) -> zenoh.Subs
     return session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(newest))
 
 
+def answer(query, ok: bool, body: dict, own_key: str) -> None:
+    """Reply to a query with JSON (on own_key, or as an error) and drop it; an asker gone meanwhile is no error."""
+    try:
+        if ok:
+            query.reply(own_key, json.dumps(body))
+        else:
+            query.reply_err(json.dumps(body))
+    except Exception:  # noqa: BLE001 - the asker went away
+        pass
+    finally:
+        query.drop()
+
+
+def serve_queries(q, own_key: str, handler, on_error=None) -> None:
+    """A queryable's thread: each query's (ok, JSON body) from handler(query), answered on own_key (a `get` on
+    ``energyctl/**`` learns which leaf answered) until the channel closes at shutdown. handler returns None for a
+    query it has handed on (answered and dropped elsewhere). An exception in it (a bad query) is answered as
+    {"error": on_error(e)} (default "Type: message") and never ends the thread."""
+    while True:
+        try:
+            query = q.recv()
+        except Exception:  # noqa: BLE001 - channel closed at shutdown
+            return
+        try:
+            res = handler(query)
+        except Exception as e:  # noqa: BLE001 - RecursionError from deep JSON too: answered
+            res = False, {"error": on_error(e) if on_error is not None else f"{type(e).__name__}: {e}"}
+        if res is not None:
+            answer(query, res[0], res[1], own_key)
+
+
 def request(session: zenoh.Session, selector: str, body: dict | None, timeout_s: float) -> tuple[bool, dict]:
     """One JSON query between services: (ok, the reply's JSON) of the first reply; (False, {"error": ...}) when
     none came within timeout_s or the reply was not JSON."""

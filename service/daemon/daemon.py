@@ -29,7 +29,7 @@ from schemas.scenario import ControllerConfig
 from service.core import core_metadata, effective_gain, make_core
 from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from service.core.interaction import outgoing_power_at as _outgoing_power_at
-from service.daemon.bus import key, latest, open_session, publisher, queued
+from service.daemon.bus import key, latest, open_session, publisher, queued, serve_queries
 from service.daemon.forecast_worker import ForecastWorker
 from service.daemon.loop_stats import HIST, LoopStats
 from service.daemon.neighbours import Neighbour
@@ -133,7 +133,7 @@ class Daemon(DaemonQueries):
             self.forecaster = ForecastWorker(c.model, self.period_s, self.core.d, c.forecast, c.forecast_window_s,
                                              on_result=self._forecast_done, impl=c.core)
             self.forecaster.start()
-        self._threads = [threading.Thread(target=self._serve, name=leaf, daemon=True,
+        self._threads = [threading.Thread(target=serve_queries, name=leaf, daemon=True,
                                           args=(self.queryables[leaf], key(c.prefix, c.id, leaf), fn))
                          for leaf, fn in serve.items()]
         for t in self._threads:

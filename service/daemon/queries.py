@@ -25,27 +25,6 @@ LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay
 class DaemonQueries:
     """The query side of ``Daemon`` (a mixin: it reads the daemon's state, and writes only ``_pending``)."""
 
-    def _serve(self, q, own_key: str, handler) -> None:
-        """Answer one queryable's queries on its own key (a `get` on ``energyctl/**`` learns which leaf answered)."""
-        while True:
-            try:
-                query = q.recv()
-            except Exception:  # noqa: BLE001 - channel closed at shutdown
-                return
-            try:
-                ok, body = handler(query)
-                if ok:
-                    query.reply(own_key, json.dumps(body))
-                else:
-                    query.reply_err(json.dumps(body))
-            except Exception as e:  # noqa: BLE001 - a bad query must not kill the thread
-                try:
-                    query.reply_err(json.dumps({"error": f"{type(e).__name__}: {e}"}))
-                except Exception:  # noqa: BLE001
-                    pass
-            finally:
-                query.drop()
-
     def status(self) -> dict:
         now = time.monotonic_ns()
         est = self.core.out.est
