@@ -47,6 +47,7 @@ class NetworkRigModel:
             plant.start_steady([s.share for s in net.sources.values()], net.nominal_v_V)
         self.pending: list[EventConfig] = sorted(net.events, key=lambda e: e.t_s)
         self.bus_idx = [plant.node_index[b] for b in net.buses]
+        self.unsupplied: dict[str, float] = {}  # bus -> first plant time no source reached it (diverged)
         self.bus_rng = np.random.default_rng([net.seed, 0xB05])  # the layer's bus measurements: their own noise
         self.r = [0.0] * ns
         # both ends of every line: (line, node, line index, node index), found once (line_ends runs per sample)
@@ -127,6 +128,14 @@ class NetworkRigModel:
         self.plant.advance(self.r, self.T, self.n_sub)
 
     def diverged(self) -> bool:
+        """A state not finite, or a node that a source supplies (NetworkPlant.supplied) outside 0.5-2x nominal.
+        Each bus no source reaches is noted in ``unsupplied`` (bus -> the first plant time, s) instead: a
+        blackout, which the buses' band checks report, not a controller's divergence."""
         v_nom = self.net.nominal_v_V
         p = self.plant
-        return not p.finite() or any(not (0.5 * v_nom < v < 2.0 * v_nom) for v in p.v_n)
+        sup = p.supplied()
+        if not all(sup):
+            for name, k in zip(self.net.buses, self.bus_idx, strict=True):
+                if not sup[k] and name not in self.unsupplied:
+                    self.unsupplied[name] = p.t
+        return not p.finite() or any(sup[k] and not (0.5 * v_nom < v < 2.0 * v_nom) for k, v in enumerate(p.v_n))

@@ -197,7 +197,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         if prof is not None:
             res.events += [Event(ts, "load", plant.load_names[j]) for ts in prof.step_times() if ts < tm.duration_s]
     res.events.sort(key=lambda e: e.t)
-    res.metrics = network_metrics(res, diverged_at, ctls)
+    res.metrics = network_metrics(res, diverged_at, ctls, rig.unsupplied)
     return res
 
 
@@ -220,14 +220,15 @@ SHARE_BAND_PP = 2.0  # sharing counts as reached within this many percentage poi
 SHARE_SMOOTH_S = 0.005  # over powers averaged over this long (s)
 
 
-def network_metrics(res: NetworkResult, diverged_at: float | None, ctls) -> dict:
+def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsupplied: dict | None = None) -> dict:
     """Per source and for the network: bands, sharing, recovery after each event, inrush, feasibility.
 
     After each event (a breaker, a connect request, a load step): the time until every bus is back within +-2 % of
     nominal; until each terminal is back within +-2 % of where it settles (its mean over the last 50 ms before the
     next event: a terminal moves to share the load, the buses are held at nominal, not the terminals), and until it
     is within +-2 % of its own v_ref; until the sharing stays within SHARE_BAND_PP of the configured shares; and at
-    a close its line's inrush (peak |i| in 50 ms) and how far each bus moved."""
+    a close its line's inrush (peak |i| in 50 ms) and how far each bus moved. unsupplied: bus -> the first time no
+    source reached it (NetworkRigModel.diverged), reported as ``unsupplied_s``."""
     net, t = res.net, res.t
     v_nom = net.nominal_v_V
     n = len(t)
@@ -240,7 +241,7 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls) -> dict
     total_P = sum(steady_P[s] for s in carrying) or 1.0
     total_share = sum(shares[s] for s in carrying) or 1.0
     m: dict = {"diverged": diverged_at is not None, "diverged_at_s": diverged_at, "t_end": float(t[-1]) if n else 0.0,
-               "sources": {}, "buses": {}, "events": []}
+               "unsupplied_s": dict(unsupplied or {}), "sources": {}, "buses": {}, "events": []}
     for s in names:
         row = res.sources[s]
         v = row["v"]

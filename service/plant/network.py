@@ -190,6 +190,7 @@ class NetworkPlant:
             self.loads.extend((self.node_index[ld.bus], CPL if ld.type == "cpl" else RESISTIVE, G, 0.0, ld.v_min_V))
         self.r = array("d", [0.0] * len(self.sources))
         self.t = 0.0
+        self._supplied: list[bool] | None = None  # supplied(), recomputed after a breaker moves
 
     def start_steady(self, shares: list[float], v_nom: float) -> None:
         """Start from a DC operating point instead of rest: the connected sources deliver the loads' current at t = 0
@@ -251,8 +252,29 @@ class NetworkPlant:
     def set_breaker(self, j: int, closed: bool) -> None:
         """Open (the current drops to zero: an ideal breaker) or close line j's breaker."""
         self.lines[LINE_W * j + 4] = 1.0 if closed else 0.0
+        self._supplied = None
         if not closed:
             self.i_l[j] = 0.0
+
+    def supplied(self) -> list[bool]:
+        """Per node (sources first, then buses): whether a source reaches it through closed lines. A source's own
+        terminal always counts (its converter feeds it, breaker open or not); a bus whose every path to a source is
+        open is unsupplied: its voltage falls as its loads drain it, which is a blackout, not a divergence."""
+        if self._supplied is None:
+            seen = [k < len(self.sources) for k in range(len(self.node_index))]
+            todo = list(range(len(self.sources)))
+            while todo:
+                k = todo.pop()
+                for j, _ in self._ends[k]:
+                    if self.lines[LINE_W * j + 4] == 0.0:
+                        continue
+                    a, b = int(self.lines[LINE_W * j + 2]), int(self.lines[LINE_W * j + 3])
+                    other = b if a == k else a
+                    if not seen[other]:
+                        seen[other] = True
+                        todo.append(other)
+            self._supplied = seen
+        return self._supplied
 
     def connected(self, source: str) -> bool:
         """Whether any of the source's lines is closed."""

@@ -335,3 +335,16 @@ def test_the_1_khz_scenarios_and_the_realtime_settings_agree():
         assert net.layer == twin.layer, path
         assert (net.timing.control_rate_hz, net.timing.delay_samples) == (1000.0, 4)
         assert all(net.sources[s].controller == twin.sources["S1"].controller for s in names), path
+
+
+def test_a_bus_no_source_reaches_is_a_blackout_not_a_divergence():
+    """Both breakers open: the bus's load drains it to 0 V. That is reported as the bus unsupplied from the second
+    trip (and fails the buses' band checks), not as a divergence; the sources' own terminals stay watched."""
+    trips = 'events=[{t_s=0.5, kind="trip", target="S2"}, {t_s=0.7, kind="trip", target="S1"}]'
+    res = _run("two-source-trip", trips, "timing.duration_s=0.9")
+    m = res.metrics
+    assert not m["diverged"] and m["unsupplied_s"] == {"bus": pytest.approx(0.7, abs=2e-4)}
+    assert res.buses["bus"][-1] < 1.0  # it did collapse
+    for s in ("S1", "S2"):
+        assert 0.5 * 80.0 < res.sources[s]["v"][-1] < 2.0 * 80.0
+    assert _run("two-source-trip", "timing.duration_s=0.6").metrics["unsupplied_s"] == {}  # one trip: still fed
