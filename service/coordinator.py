@@ -325,6 +325,11 @@ class Coordinator:
         if body.get("offer"):  # the handshake's first step: what it would be asked for, to forecast against
             box, tau_p = self.layer.connect_offer(s, window, self.connected)
             self._offers[name] = (window, box, tau_p, tuple(self.connected))  # its announcement is judged on this
+            # logged at the sample it was computed before (the layer as after self.seq): replay recomputes it there
+            self._event(self.t, self.seq + 1, "offer", {"source": name, "window": window, "at_seq": at,
+                                                        "box": list(box), "tau_prime_s": tau_p,
+                                                        "v_ref_V": self.layer.v_ref[s],
+                                                        "connected": list(self.connected)})
             self._answer(query, True, {"source": name, "offer": True, "window": window, "at_seq": at,
                                        "box": list(box), "tau_prime_s": tau_p, "v_ref_V": self.layer.v_ref[s],
                                        "window_s": self.layer.cfg.window_s})

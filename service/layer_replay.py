@@ -20,8 +20,9 @@ def is_coordinator_log(path: str | Path) -> bool:
 
 def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
     """{"identical", "samples", "allocations", "mismatches" (the first few), "verdicts", "verdicts_differing",
-    "gaps"}: gaps count the samples the coordinator did not answer (a realtime coordinator answers the newest;
-    the layer is fed what it answered, as live) and a rig's restarts."""
+    "offers", "offers_differing" (each plug-in offer recomputed at the sample it was made before), "gaps"}: gaps
+    count the samples the coordinator did not answer (a realtime coordinator answers the newest; the layer is fed
+    what it answered, as live) and a rig's restarts."""
     meta = scan(path)["metadata"]
     if "coordinator" not in meta or "scenario" not in meta:
         raise LogError(f"{path}: not a coordinator log (no 'coordinator' and 'scenario' metadata)")
@@ -38,13 +39,12 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
         if e["kind"] == "resume":
             for n, v in json.loads(e["detail"])["v_ref_V"].items():
                 layer.v_ref[names.index(n)] = v
-    connects = {}
+    connects = {}  # seq -> [(kind, detail)]: the offers and plug-in verdicts answered before that sample
     for e in events:
-        if e["kind"] == "connect":
-            d = json.loads(e["detail"])
-            connects.setdefault(e["seq"], []).append(d)
+        if e["kind"] in ("connect", "offer"):
+            connects.setdefault(e["seq"], []).append((e["kind"], json.loads(e["detail"])))
     out = {"samples": 0, "allocations": 0, "mismatches": [], "n_mismatches": 0, "verdicts": 0,
-           "verdicts_differing": [], "gaps": 0}
+           "verdicts_differing": [], "offers": 0, "offers_differing": [], "gaps": 0}
     prev = None
     verdict_seqs = sorted(connects)
     vi = 0
@@ -57,7 +57,16 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
         prev = k
         # plug-in verdicts answered before this sample (after the previous one), with the layer's state then
         while vi < len(verdict_seqs) and verdict_seqs[vi] <= k:
-            for d in connects[verdict_seqs[vi]]:
+            for kind, d in connects[verdict_seqs[vi]]:
+                if kind == "offer":  # what the source was offered, recomputed from the layer's state then
+                    box, tau_p = layer.connect_offer(names.index(d["source"]), d["window"], d["connected"])
+                    got = (list(box), tau_p, layer.v_ref[names.index(d["source"])])
+                    out["offers"] += 1
+                    if got != (d["box"], d["tau_prime_s"], d["v_ref_V"]):
+                        out["offers_differing"].append({"seq": verdict_seqs[vi], "source": d["source"],
+                                                        "logged": [d["box"], d["tau_prime_s"], d["v_ref_V"]],
+                                                        "replayed": list(got)})
+                    continue
                 if "controller" not in d or d.get("reason") == "already connected" or d.get("checked") is False:
                     continue
                 s = names.index(d["source"])
@@ -99,5 +108,6 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
                     out["mismatches"].append({"seq": k, "source": n, "logged": logged, "replayed": got})
         layer.accumulate([tk["bus_v_mean"]] if tk["has_buses"] else [], v, P, [tk["load_W"]])
         layer.window_end(k, connected, [True] * len(names), [False] * len(names))
-    out["identical"] = out["n_mismatches"] == 0 and not out["verdicts_differing"] and out["samples"] > 0
+    out["identical"] = (out["n_mismatches"] == 0 and not out["verdicts_differing"] and not out["offers_differing"]
+                        and out["samples"] > 0)
     return out

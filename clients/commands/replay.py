@@ -73,10 +73,12 @@ def replay_layer(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(res))
     elif res["identical"]:
-        print(f"identical: {res['allocations']} allocations over {res['samples']} samples and {res['verdicts']} "
-              f"plug-in verdicts reproduced bit for bit ({res['gaps']} samples the coordinator skipped)")
+        print(f"identical: {res['allocations']} allocations over {res['samples']} samples, {res['offers']} plug-in "
+              f"offers and {res['verdicts']} verdicts reproduced bit for bit ({res['gaps']} samples the coordinator "
+              "skipped)")
     else:
-        first = (res["mismatches"] or res["verdicts_differing"] or [{}])[0]
+        first = (res["mismatches"] or res["offers_differing"] or res["verdicts_differing"] or [{}])[0]
         print(f"differs: {res['n_mismatches']} of {res['allocations']} allocations, "
-              f"{len(res['verdicts_differing'])} verdicts; first: {json.dumps(first)}")
+              f"{len(res['offers_differing'])} offers, {len(res['verdicts_differing'])} verdicts; "
+              f"first: {json.dumps(first)}")
     return 0 if res["identical"] else 1

@@ -69,7 +69,7 @@ def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
         for s in net.sources:
             assert replay([str(p) for p in live.daemon_logs(s)], progress=False)["identical"], s
         rc = replay_coordinator(str(live.logs / "coordinator.mcap"))
-        assert rc["identical"] and rc["verdicts"] == 1 and rc["samples"] == 1300, rc
+        assert rc["identical"] and rc["verdicts"] == 1 and rc["offers"] >= 1 and rc["samples"] == 1300, rc
         # the plug-in was judged on the Z^{r,out} S3 forecast and announced itself
         import json
 
