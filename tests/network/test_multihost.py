@@ -331,10 +331,14 @@ def test_the_network_across_hosts_cut_restore_and_router_restart(network):
     c = final["counters"]
     # every grid sample the rig sent reached the coordinator or is counted missing
     assert c["grid_samples"] + c["missing_samples"] == final["seq"] + 1 == res["samples"], (c, final["seq"], res)
-    # S2's return; a refusal only for a request that came before its token (it asks again), each in the verdicts
+    # S2's return; refusals only of the kinds the source retries, each in the verdicts: a request that came before
+    # its token, or an announcement whose offer had aged out (realtime: the forecast at background priority under
+    # the realtime processes took 0.9 s once, 18 windows), never the check itself
     refused = [v for v in final["verdicts"] if not v["accepted"]]
     assert c["accepted"] >= 1 and c["refused"] == len(refused), (c, final["verdicts"])
-    assert all("liveliness token is not up" in v["reason"] for v in refused), refused
+    assert all("liveliness token is not up" in v["reason"] or v["reason"].startswith("no current offer")
+               for v in refused), [v["reason"] for v in refused]
+    times["handshake_retries"] = len(refused)
     for s in SOURCES:  # the restart, in each source's own books
         assert json.loads((net.work / f"{s}.json").read_text())["network"]["fallback_ticks"] > 0
 
