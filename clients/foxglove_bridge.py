@@ -284,9 +284,9 @@ class Bridge(Served):
         self._glock = threading.Lock()  # nodes and _graph; never held by an SDK callback (see _listener)
         self._alive_sub = None
         self._watcher: threading.Thread | None = None
-        self._graph_held = threading.Event()  # the SDK took the bridge's own graph subscription (GraphHold)
-        self._hold: GraphHold | None = None
-        self.graph_counts = {"tokens_seen": 0, "tokens_gone": 0, "status_unanswered": 0, "graph_updates": 0}
+        self._hold: GraphHold | None = None  # the bridge's own graph subscription (see GraphHold)
+        self.graph_counts = {"tokens_seen": 0, "tokens_gone": 0, "status_unanswered": 0, "graph_updates": 0,
+                             "hold_reconnects": 0}
 
     # ------------------------------------------------------------------------------------------------ life cycle
 
@@ -314,10 +314,7 @@ class Bridge(Served):
                 name="energyctl", host=self.host, port=self._port, context=self.context,
                 capabilities=[Capability.Parameters, Capability.Services, Capability.ConnectionGraph],
                 server_listener=_listener(self), supported_encodings=["json"], services=self._services())
-            self._hold = GraphHold(self.host, self.server.port)  # before any publish (see GraphHold)
-            if not self._graph_held.wait(GraphHold.TIMEOUT_S):
-                raise RuntimeError(f"the Foxglove server on port {self.server.port} did not take the bridge's own "
-                                   f"connection-graph subscription within {GraphHold.TIMEOUT_S:g} s")
+            self._hold = GraphHold.taken(self.host, self.server.port)  # before any publish (see GraphHold)
             self._publish_graph()  # empty until the tokens come: what a client subscribing now is sent
             # the tokens, those already declared first (history); a channel read by the graph thread, no Python
             # callback (dropping one at close can deadlock zenoh-python against the GIL)
@@ -354,8 +351,9 @@ class Bridge(Served):
                 pass
         self._subs = []
         if self.server is not None:
-            self.server.stop()  # with the GIL released: the SDK calls the listener as the hold's connection ends
-            self.server = None
+            with self._glock:  # no publish from here on
+                server, self.server = self.server, None
+            server.stop()  # with the GIL released: the SDK calls the listener as the hold's connection ends
         if self._hold is not None:
             self._hold.close()
             self._hold = None
@@ -380,7 +378,7 @@ class Bridge(Served):
         with self._glock:
             graph = {"live": {c: {"controller": n.controller, "neighbours": list(n.neighbours)}
                               for c, n in sorted(self.nodes.items())},
-                     "held": self._graph_held.is_set(), **self.graph_counts}
+                     "held": self._hold is not None and not self._hold.lost, **self.graph_counts}
         return {"port": self.port, "components": self.ids, "rate_hz": self.rate_hz, "channels": channels,
                 "received": sum(c["received"] for c in channels.values()),
                 "logged": sum(c["logged"] for c in channels.values()),
@@ -538,7 +536,17 @@ class Bridge(Served):
         return Node(True, tuple(sorted(reply.get("neighbours") or {})))
 
     def _publish_graph(self) -> None:
-        """Publishes the graph of self.nodes if it changed (never from an SDK callback: the SDK deadlocks)."""
+        """Publishes the graph of self.nodes if it changed (never from an SDK callback: the SDK deadlocks); first a
+        new GraphHold if the old one's connection ended."""
+        hold, server = self._hold, self.server
+        if hold is not None and hold.lost and server is not None and not self._stop.is_set():
+            hold.close()
+            try:
+                self._hold = GraphHold.taken(self.host, server.port)
+            except (OSError, RuntimeError) as e:  # no publish without it (that is what deadlocks): next time again
+                self.last_error = f"connection graph not published: {e}"
+                return
+            self.graph_counts["hold_reconnects"] += 1
         from foxglove import ConnectionGraph
 
         with self._glock:
@@ -621,20 +629,25 @@ class GraphHold:
     server has stopped, the SDK never calls Python under that lock while anything publishes.
 
     The few lines of RFC 6455 a client needs: the upgrade request, one masked text frame; whatever the server
-    sends (its info, advertisements, graph updates) is read and dropped by a thread of its own."""
+    sends (its info, advertisements, graph updates) is read and dropped by a thread of its own, which sets
+    ``ready`` at the first graph update (the SDK has taken the subscription) and ``lost`` if the connection ends
+    while not closed (the bridge then opens a new one before its next publish)."""
 
     TIMEOUT_S = 5.0
+    MARK = b"connectionGraphUpdate"  # in the server's JSON text frames, unmasked and uncompressed
 
     def __init__(self, host: str, port: int):
         import base64
         import os
         import socket
 
+        self.ready, self.lost, self._closing = threading.Event(), False, False
         host = "127.0.0.1" if host in ("", "0.0.0.0") else "::1" if host == "::" else host
         self.sock = socket.create_connection((host, port), timeout=self.TIMEOUT_S)
         try:
             ws_key = base64.b64encode(os.urandom(16)).decode()
-            self.sock.sendall(f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+            where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+            self.sock.sendall(f"GET / HTTP/1.1\r\nHost: {where}\r\nUpgrade: websocket\r\n"
                               f"Connection: Upgrade\r\nSec-WebSocket-Key: {ws_key}\r\nSec-WebSocket-Version: 13\r\n"
                               "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n".encode())
             head = b""
@@ -643,7 +656,8 @@ class GraphHold:
                 if not chunk:
                     raise ConnectionError("the Foxglove server closed the bridge's own connection in its handshake")
                 head += chunk
-            status = head.split(b"\r\n", 1)[0]
+            status, _, rest = head.partition(b"\r\n\r\n")
+            status = status.split(b"\r\n", 1)[0]
             if status.split(b" ")[1:2] != [b"101"]:
                 raise ConnectionError(f"the Foxglove server refused the bridge's own connection: {status.decode()!r}")
             self.sock.sendall(self.text_frame(json.dumps({"op": "subscribeConnectionGraph"}).encode()))
@@ -651,8 +665,18 @@ class GraphHold:
         except BaseException:
             self.sock.close()
             raise
-        self._thread = threading.Thread(target=self._drain, name="foxglove-graph-hold", daemon=True)
+        self._thread = threading.Thread(target=self._drain, args=(rest,), name="foxglove-graph-hold", daemon=True)
         self._thread.start()
+
+    @classmethod
+    def taken(cls, host: str, port: int) -> GraphHold:
+        """A hold whose subscription the server has taken (its first graph update came), or an error saying why."""
+        hold = cls(host, port)
+        if not hold.ready.wait(cls.TIMEOUT_S):
+            hold.close()
+            raise RuntimeError(f"the Foxglove server on port {port} did not take the bridge's own connection-graph "
+                               f"subscription within {cls.TIMEOUT_S:g} s")
+        return hold
 
     @staticmethod
     def text_frame(payload: bytes) -> bytes:
@@ -661,20 +685,31 @@ class GraphHold:
         import struct
 
         n = len(payload)
-        head = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n))
+        length = (bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n) if n < 65536
+                  else bytes([0x80 | 127]) + struct.pack(">Q", n))
         mask = os.urandom(4)
-        return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+        return bytes([0x81]) + length + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
 
-    def _drain(self) -> None:
+    def _drain(self, seen: bytes) -> None:
         try:
-            while self.sock.recv(65536):
-                pass
+            while True:
+                if not self.ready.is_set() and self.MARK in seen:
+                    self.ready.set()
+                chunk = self.sock.recv(65536)
+                if not chunk:
+                    break
+                seen = seen[-len(self.MARK):] + chunk
         except OSError:  # closed
             pass
+        if not self._closing:
+            self.lost = True
+            print("energyctl foxglove: the bridge's own connection-graph subscription ended; opening a new one "
+                  "before the next graph update", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         import socket
 
+        self._closing = True
         try:
             self.sock.shutdown(socket.SHUT_RDWR)  # wakes the drain thread's recv
         except OSError:
@@ -702,12 +737,7 @@ def _listener(bridge: Bridge):
         def on_parameters_unsubscribe(self, param_names):
             bridge.subscribe_parameters(list(param_names), False)
 
-        # called only for the first subscriber and after the last: the bridge's own (GraphHold); publishing from
-        # here would deadlock the SDK
-        def on_connection_graph_subscribe(self):
-            bridge._graph_held.set()
-
-        def on_connection_graph_unsubscribe(self):
-            bridge._graph_held.clear()
+        # on_connection_graph_(un)subscribe: left to the base class; the SDK calls them only for its first
+        # subscriber and after its last, the bridge's own (GraphHold); publishing from there would deadlock it
 
     return Listener()

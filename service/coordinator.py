@@ -41,13 +41,10 @@ from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
 from service.core.feasibility import incoming_range
 from service.daemon.bus import answer, key, open_session, publisher, queued, request, serve_queries
-from service.layer import InterconnectionLayer, judge_announced
+from service.layer import InterconnectionLayer, judge_announced, offer_staleness
 from service.plant.network import NetworkPlant
 
 MAX_REQUEST_BYTES = 64 * 1024  # a connect request larger than this is refused unread
-# an offer is good for an announcement this many windows on (realtime: the source's forecast takes 30-350 ms on a
-# busy machine; the window's line-loss estimate moves meanwhile, but its load box must not have moved far)
-MAX_OFFER_AGE_WINDOWS = 10
 I_MAX_A = 10_000.0  # a grid sample's current beyond this (A) is refused, named
 P_MAX_W = 10_000_000.0  # a load's power beyond this (W) is refused, named
 
@@ -337,10 +334,8 @@ class Coordinator:
         if announced is not None:  # its own forecast Z^{r,out}, checked against the Z^{r,in} of the offer it had
             P_out, Qdot_out, saturation = announced
             offer = self._offers.pop(name, None)
-            if offer is None or offer[3] != tuple(self.connected) or window - offer[0] > MAX_OFFER_AGE_WINDOWS:
-                stale = "no offer" if offer is None else (
-                    "the breakers changed" if offer[3] != tuple(self.connected) else
-                    f"its offer is {window - offer[0]} windows old")
+            stale = offer_staleness(None if offer is None else (offer[0], offer[3]), window, self.connected)
+            if stale:
                 offer = (window, *self.layer.connect_offer(s, window, self.connected))
                 reason, z_in = f"no current offer ({stale}): ask again", incoming_range(*offer[1], offer[2])
             else:

@@ -162,6 +162,25 @@ class InterconnectionLayer:
                                  max_ramp_s=self.cfg.window_s, impl=impl)
 
 
+# an offer is good for an announcement this many windows on (realtime: the source's forecast takes 30-350 ms on a
+# busy machine, 0.9 s once under the realtime processes; the window's line-loss estimate moves meanwhile, but its
+# load box must not have moved far)
+MAX_OFFER_AGE_WINDOWS = 10
+
+
+def offer_staleness(offer: tuple[int, tuple] | None, window: int, connected) -> str:
+    """Why an offer (the window it was made for, the breakers then) no longer serves an announcement arriving in
+    window with the breakers connected; "" if it does. The coordinator refuses such an announcement with
+    ``f"no current offer ({why}): ask again"`` and its replay recomputes the same."""
+    if offer is None:
+        return "no offer"
+    if tuple(offer[1]) != tuple(connected):
+        return "the breakers changed"
+    if window - offer[0] > MAX_OFFER_AGE_WINDOWS:
+        return f"its offer is {window - offer[0]} windows old"
+    return ""
+
+
 def judge_announced(box: tuple, tau_p: float, P_out: tuple[float, float], Qdot_out: tuple[float, float],
                     saturation: str = "") -> tuple[str, tuple]:
     """The plug-in check of an announced Z^{r,out} (P_out W, Qdot_out W/s, and the saturation its forecast met)

@@ -9,13 +9,44 @@ from pathlib import Path
 
 from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
-from service.layer import InterconnectionLayer, judge_announced
+from service.layer import InterconnectionLayer, judge_announced, offer_staleness
 from service.logio.reader import LogError, messages, scan
 from service.plant.network import NetworkPlant
 
 
 def is_coordinator_log(path: str | Path) -> bool:
     return "coordinator" in scan(path)["metadata"]
+
+
+class Handshakes:
+    """The coordinator's plug-in offers and its verdicts on announced Z^{r,out}, recomputed from the replayed layer
+    (``layer``, replaced by the caller when the rig restarts). It keeps the offers per source as the coordinator does
+    (an announcement uses its source's up), so a refusal for a stale offer is recomputed too. A log without offer
+    events (an older coordinator's) judges each announcement on the offer logged with it."""
+
+    def __init__(self, layer: InterconnectionLayer, names: list[str], with_offers: bool = True):
+        self.layer, self.names, self.with_offers = layer, names, with_offers
+        self.kept: dict[str, tuple[int, tuple]] = {}  # source -> (window, breakers) of its offer
+
+    def offer(self, d: dict) -> tuple[list, list] | None:
+        """A logged offer event's detail: None if the layer gives it again bit for bit, else (logged, replayed)."""
+        s = self.names.index(d["source"])
+        box, tau_p = self.layer.connect_offer(s, d["window"], d["connected"])
+        got = [list(box), tau_p, self.layer.v_ref[s]]
+        self.kept[d["source"]] = (d["window"], tuple(d["connected"]))
+        logged = [d["box"], d["tau_prime_s"], d["v_ref_V"]]
+        return None if got == logged else (logged, got)
+
+    def announced(self, d: dict, seq: int) -> str:
+        """A logged verdict on an announcement (logged at sample seq): the reason the coordinator's rules give."""
+        if self.with_offers:
+            stale = offer_staleness(self.kept.pop(d["source"], None), seq // self.layer.per_window, d["connected"])
+            if stale:
+                return f"no current offer ({stale}): ask again"
+        elif d["reason"].startswith("no current offer"):
+            return d["reason"]
+        return judge_announced(tuple(d["offer"]["box"]), d["offer"]["tau_prime_s"], tuple(d["Z_out"]["P"]),
+                               tuple(d["Z_out"]["Qdot"]), d.get("saturation", ""))[0]
 
 
 def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
@@ -47,33 +78,30 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
            "verdicts_differing": [], "offers": 0, "offers_differing": [], "gaps": 0}
     prev = None
     verdict_seqs = sorted(connects)
+    hs = Handshakes(layer, names, with_offers=any(e["kind"] == "offer" for e in events))
     vi = 0
     for tk in ticks:
         k = tk["seq"]
         if prev is not None and k != prev + 1:
             out["gaps"] += 1
             if k == 0:  # the rig restarted: the coordinator started a new layer
-                layer = InterconnectionLayer(net, plant)
+                layer = hs.layer = InterconnectionLayer(net, plant)
         prev = k
         # plug-in verdicts answered before this sample (after the previous one), with the layer's state then
         while vi < len(verdict_seqs) and verdict_seqs[vi] <= k:
             for kind, d in connects[verdict_seqs[vi]]:
                 if kind == "offer":  # what the source was offered, recomputed from the layer's state then
-                    box, tau_p = layer.connect_offer(names.index(d["source"]), d["window"], d["connected"])
-                    got = (list(box), tau_p, layer.v_ref[names.index(d["source"])])
                     out["offers"] += 1
-                    if got != (d["box"], d["tau_prime_s"], d["v_ref_V"]):
+                    diff = hs.offer(d)
+                    if diff is not None:
                         out["offers_differing"].append({"seq": verdict_seqs[vi], "source": d["source"],
-                                                        "logged": [d["box"], d["tau_prime_s"], d["v_ref_V"]],
-                                                        "replayed": list(got)})
+                                                        "logged": diff[0], "replayed": diff[1]})
                     continue
                 if "controller" not in d or d.get("reason") == "already connected" or d.get("checked") is False:
                     continue
                 s = names.index(d["source"])
                 if d.get("announced"):  # the source's own forecast, judged against the offer it was made for
-                    reason = d["reason"] if d["reason"].startswith("no offer") else judge_announced(
-                        tuple(d["offer"]["box"]), d["offer"]["tau_prime_s"], tuple(d["Z_out"]["P"]),
-                        tuple(d["Z_out"]["Qdot"]), d.get("saturation", ""))[0]
+                    reason = hs.announced(d, verdict_seqs[vi])
                 else:
                     f = layer.connect_check(s, ControllerConfig.model_validate(d["controller"]), d["window"],
                                             d["connected"], net.timing.delay_samples, impl)

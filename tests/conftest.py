@@ -102,17 +102,65 @@ class PumpingClient:
 
 # ---- a hung test must fail the run with its stacks, not hold CI until its time limit ----------------------------
 # CI once ran out of its 90 minutes with nothing printed after the 40th test (pytest's output to a pipe is
-# block-buffered, so the rest was lost with the process). Every test now gets TEST_TIMEOUT_S: past it the stacks of
-# every thread and the processes the run started are printed, those processes killed, and pytest exits 3. The
-# progress is flushed after each test, so CI's log shows how far the run came.
+# block-buffered, so the rest was lost with the process). Now:
+# - every test gets TEST_TIMEOUT_S: past it the stacks of every thread and the processes the run started are
+#   printed, those processes killed, and pytest exits 3; progress is flushed after each test;
+# - the same EXIT_TIMEOUT_S after the summary if the interpreter's exit hangs (leftover threads, pools, queues);
+# - where the hung call holds the GIL (the watchdog threads then never run), faulthandler prints the stacks from C
+#   30 s later and exits 1, and a guard process started with the session kills what pytest leaves behind (a child
+#   left running would hold CI's output pipe open).
+# 0 or inf turns a timeout off.
 
 TEST_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_TIMEOUT_S", "600"))
-# from the end of the session to the interpreter's exit (leftover threads, pools, queues)
 EXIT_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_EXIT_TIMEOUT_S", "120"))
+BACKSTOP_S = 30.0  # faulthandler's dump and exit, after a watchdog thread that did not get to run
+
+# the guard: polls pytest's process tree every 2 s; once pytest is gone, kills what was below it last time
+_GUARD = r"""
+import os, signal, sys, time
+root, me = int(sys.argv[1]), os.getpid()
+def tree():
+    kids = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat", "rb") as f:
+                    fields = f.read().rsplit(b")", 1)[1].split()
+                kids.setdefault(int(fields[1]), []).append((int(d), fields[0]))
+            except (OSError, ValueError, IndexError):
+                pass
+    alive = any(p == root and st != b"Z" for ps in kids.values() for p, st in ps)
+    out, todo = [], [root]
+    while todo:
+        for p, _ in kids.get(todo.pop(), ()):
+            if p != me:
+                out.append(p)
+                todo.append(p)
+    return alive, out
+last = []
+while True:
+    alive, below = tree()
+    if not alive:
+        break
+    last = below
+    time.sleep(2.0)
+for p in last:
+    try:
+        os.kill(p, signal.SIGKILL)
+    except OSError:
+        pass
+"""
+
+
+def _on(timeout_s: float) -> bool:
+    import math
+
+    return 0 < timeout_s < math.inf
 
 
 def _descendants() -> list[tuple[int, str]]:
-    """(pid, command line) of every live process below this one (from /proc; [] where there is none)."""
+    """(pid, command line) of every live process below this one (from /proc; [] where there is none), the guard
+    excepted."""
     import os
 
     me, children = os.getpid(), {}
@@ -130,18 +178,26 @@ def _descendants() -> list[tuple[int, str]]:
     out, todo = [], [me]
     while todo:
         for pid, cmd in children.get(todo.pop(), ()):
-            out.append((pid, cmd))
-            todo.append(pid)
+            if pid not in _GUARD_PID:
+                out.append((pid, cmd))
+                todo.append(pid)
     return out
 
 
 _STDERR_FD: list[int] = []  # a dup of the terminal's stderr, taken before any test captures fd 2
+_GUARD_PID: list[int] = []
 
 
 def pytest_configure(config):
     import os
+    import subprocess
+    import sys
 
     _STDERR_FD.append(os.dup(2))
+    if os.path.isdir("/proc"):
+        g = subprocess.Popen([sys.executable, "-c", _GUARD, str(os.getpid())], stdin=subprocess.DEVNULL,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        _GUARD_PID.append(g.pid)
 
 
 def _say(text: str) -> None:
@@ -169,39 +225,49 @@ def _report_and_kill(what: str) -> None:
             pass
 
 
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_protocol(item, nextitem):
+def _watchdog(timeout_s: float, what: str, flush):
+    """A daemon thread that, unless the returned event is set within timeout_s, reports, kills and exits 3; and
+    faulthandler's dump-and-exit BACKSTOP_S later for a hang that holds the GIL. Returns the event (None: off)."""
     import faulthandler
     import os
-    import sys
     import threading
 
+    if not _on(timeout_s):
+        return None
     done = threading.Event()
 
     def watch() -> None:
-        if done.wait(TEST_TIMEOUT_S):
+        if done.wait(timeout_s):
             return
-        _report_and_kill(f"{item.nodeid} still running after {TEST_TIMEOUT_S:.0f} s")
+        _report_and_kill(f"{what} after {timeout_s:g} s")
         try:
-            sys.stdout.flush()
+            flush()
         finally:
             os._exit(3)
 
     threading.Thread(target=watch, name="test-watchdog", daemon=True).start()
-    # the stacks from C, in case the hung call holds the GIL (the thread above then never runs)
-    faulthandler.dump_traceback_later(TEST_TIMEOUT_S + 30, exit=True, file=_STDERR_FD[0] if _STDERR_FD else 2)
+    faulthandler.dump_traceback_later(timeout_s + BACKSTOP_S, exit=True, file=_STDERR_FD[0] if _STDERR_FD else 2)
+    return done
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    import faulthandler
+
+    tw = item.config.get_terminal_writer()
+    done = _watchdog(TEST_TIMEOUT_S, f"{item.nodeid} still running", tw.flush)
     try:
         yield
     finally:
-        done.set()
-        faulthandler.cancel_dump_traceback_later()
-        item.config.get_terminal_writer().flush()
+        if done is not None:
+            done.set()
+            faulthandler.cancel_dump_traceback_later()
+        tw.flush()
 
 
 def pytest_unconfigure(config):
-    """After the summary: say what is still running (it would hold the interpreter's exit), and arm a last timer
-    that dumps the stacks and exits 3 if the exit itself hangs."""
-    import faulthandler
+    """After the summary: say what is still running (it would hold the interpreter's exit), and arm the exit's
+    watchdog."""
     import sys
     import threading
 
@@ -211,4 +277,4 @@ def pytest_unconfigure(config):
         _say("\nleft running at the end of the tests (the exit waits for them): "
              f"threads {[t.name for t in alive]}, processes {[(p, c[:120]) for p, c in procs]}\n")
     sys.stdout.flush()
-    faulthandler.dump_traceback_later(EXIT_TIMEOUT_S, exit=True, file=_STDERR_FD[0] if _STDERR_FD else 2)
+    _watchdog(EXIT_TIMEOUT_S, "the interpreter has not exited", sys.stdout.flush)

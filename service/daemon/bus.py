@@ -198,12 +198,17 @@ def latest(session: zenoh.Session, key_expr: str, newest: int = 1) -> zenoh.Subs
 
 
 def answer(query, ok: bool, body: dict, own_key: str) -> None:
-    """Reply to a query with JSON (on own_key, or as an error) and drop it; an asker gone meanwhile is no error."""
+    """Reply to a query with JSON (on own_key, or as an error) and drop it; an asker gone meanwhile is no error. A
+    body JSON cannot encode is answered as an error naming why (the asker is not left to time out)."""
+    try:
+        text = json.dumps(body)
+    except (TypeError, ValueError) as e:
+        ok, text = False, json.dumps({"error": f"the reply could not be encoded: {type(e).__name__}: {e}"})
     try:
         if ok:
-            query.reply(own_key, json.dumps(body))
+            query.reply(own_key, text)
         else:
-            query.reply_err(json.dumps(body))
+            query.reply_err(text)
     except Exception:  # noqa: BLE001 - the asker went away
         pass
     finally:

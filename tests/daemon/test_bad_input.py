@@ -194,3 +194,54 @@ def test_rejections_are_recorded_as_diagnostics_without_flooding_the_log(tmp_pat
     assert len(flood) == -(-n_flood // every)  # one per 10 ms: 10, not 1000
     said = len(flood) + sum(int(x.split("[and ")[1].split()[0]) for x in flood if "[and " in x)
     assert said == n_flood - (every - 1)  # all but the last stretch, still waiting for its event
+
+
+def test_the_query_loop_answers_every_query_a_bad_one_and_an_unencodable_reply_included():
+    """service.daemon.bus.serve_queries: a handler that raises is answered with its error, a reply JSON cannot encode
+    (a numpy integer) is answered as an error naming why, a query handed on is not answered here, and every answered
+    query is dropped; the loop ends when its channel closes."""
+    import json
+
+    import numpy as np
+
+    from service.daemon.bus import serve_queries
+
+    class Q:
+        def __init__(self, n):
+            self.n, self.got, self.dropped = n, None, False
+
+        def reply(self, key, text):
+            self.got = ("ok", key, json.loads(text))
+
+        def reply_err(self, text):
+            self.got = ("err", json.loads(text))
+
+        def drop(self):
+            self.dropped = True
+
+    queries = [Q(n) for n in range(4)]
+
+    class Channel:
+        def __init__(self):
+            self.left = list(queries)
+
+        def recv(self):
+            if not self.left:
+                raise RuntimeError("closed")
+            return self.left.pop(0)
+
+    def handler(q):
+        if q.n == 0:
+            return True, {"n": 0}
+        if q.n == 1:
+            raise ValueError("set: no such key")
+        if q.n == 2:
+            return True, {"n": np.int64(2)}
+        return None  # handed on
+
+    serve_queries(Channel(), "energyctl/x/status", handler)
+    assert queries[0].got == ("ok", "energyctl/x/status", {"n": 0})
+    assert queries[1].got == ("err", {"error": "ValueError: set: no such key"})
+    assert queries[2].got[0] == "err" and "could not be encoded" in queries[2].got[1]["error"]
+    assert queries[3].got is None and not queries[3].dropped
+    assert all(q.dropped for q in queries[:3])

@@ -12,8 +12,9 @@ from conftest import SCENARIOS
 from schemas.netlive import CoordinatorConfig
 from schemas.network import load_network
 from service import coordinator as coordinator_module
-from service.coordinator import MAX_OFFER_AGE_WINDOWS, Coordinator
+from service.coordinator import Coordinator
 from service.forecast import forecast_outgoing
+from service.layer import MAX_OFFER_AGE_WINDOWS
 
 
 class Query:
@@ -116,3 +117,32 @@ def test_a_request_without_a_forecast_of_its_own_is_refused_by_name_without_runn
     monkeypatch.setattr(co.layer, "connect_check", lambda *a, **k: pytest.fail("a forecast ran on the loop"))
     kind, r = ask(co, {"source": "S3", "controller": co.net.sources["S3"].controller.model_dump()})
     assert kind == "err" and "Z_out" in r["error"] and not co.verdicts, r
+
+
+def test_the_log_replays_each_offer_and_each_verdict_stale_ones_included(co, monkeypatch):
+    """The coordinator's offer and connect events, fed to the replay's Handshakes with the same layer, give every
+    offer bit for bit and every verdict's reason: accepted, an offer too old, breakers changed, no offer."""
+    from service.layer_replay import Handshakes
+
+    events: list[tuple[int, str, dict]] = []
+    monkeypatch.setattr(co, "_event", lambda t, seq, kind, d: events.append((seq, kind, json.loads(json.dumps(d)))))
+    ask(co, announcement(co))  # accepted
+    body = announcement(co)
+    co.seq += (MAX_OFFER_AGE_WINDOWS + 1) * co.layer.per_window
+    ask(co, body)  # too old
+    body = announcement(co)
+    co.connected[1] = False
+    ask(co, body)  # breakers changed
+    ask(co, body)  # no offer
+    hs = Handshakes(co.layer, co.names)
+    reasons = []
+    for seq, kind, d in events:
+        if kind == "offer":
+            assert hs.offer(d) is None, d
+        elif d.get("announced"):
+            assert hs.announced(d, seq) == d["reason"], d
+            reasons.append(d["reason"])
+    assert reasons[0] == "" and "windows old" in reasons[1] and "breakers changed" in reasons[2]
+    assert "no offer" in reasons[3] and sum(k == "offer" for _, k, _ in events) == 3
+    # a replay that kept no offers (or forgot one) would call the first "no offer": the check can fail
+    assert Handshakes(co.layer, co.names).announced(next(d for _, k, d in events if d.get("announced")), 0) != ""
