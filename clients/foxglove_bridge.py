@@ -418,16 +418,38 @@ class Bridge(Served):
         return changed
 
     def _poll(self) -> None:
-        """While a Foxglove client subscribes to parameters: reread the configs every poll_s and publish changes
-        made elsewhere (energyctl query --set, another client)."""
+        """The parameters' thread, their only publisher: every poll_s rereads the configs of the components whose
+        parameters are subscribed (by the bridge's own hold: all it knows) and publishes changes made elsewhere
+        (energyctl query --set, another client), each after the hold has subscribed every name known by then."""
+        self._hold_parameters()
         while not self._stop.wait(self.poll_s):
             with self._plock:
                 wanted = {n.split(".", 1)[0] for n in self._subscribed_params}
-            for cid in (c for c in self.ids if c in wanted):
+            for cid in (c for c in self.ids if c in wanted or not self._held(c)):
                 changed = self._refresh(cid, GET_TIMEOUT_S)
                 server = self.server
-                if changed and server is not None and not self._stop.is_set():
+                if changed and server is not None and not self._stop.is_set() and self._hold_parameters():
                     server.publish_parameter_values(self._parameters(changed))
+
+    def _held(self, cid: str) -> bool:
+        hold = self._hold
+        return hold is not None and any(n.split(".", 1)[0] == cid for n in hold.params)
+
+    def _hold_parameters(self) -> bool:
+        """The hold subscribes to every parameter name the bridge knows and has not subscribed yet, so that no
+        client's subscription to one is the first nor its leaving the last (the SDK calls the listener under its
+        parameter lock then, which publish_parameter_values reads holding the GIL: GraphHold). False if the hold
+        is gone or the server did not take them (nothing is published then; next time again)."""
+        hold = self._hold
+        if hold is None or hold.lost:
+            return False
+        with self._plock:
+            new = sorted(set(self._params) - hold.params)
+        if new and not hold.subscribe_parameters(new):
+            self.last_error = "parameter values not published: the bridge's own subscription was not taken"
+            return False
+        hold.params.update(new)
+        return True
 
     @staticmethod
     def _parameters(values: dict[str, object]) -> list:
@@ -628,7 +650,9 @@ class GraphHold:
     reproduced here in 1 of 9 runs). With this subscription taken before the first publish and kept until the
     server has stopped, the SDK never calls Python under that lock while anything publishes.
 
-    The few lines of RFC 6455 a client needs: the upgrade request, one masked text frame; whatever the server
+    The same for parameters: it subscribes to every parameter name the bridge knows (Bridge._hold_parameters).
+
+    The few lines of RFC 6455 a client needs: the upgrade request, masked text frames; whatever the server
     sends (its info, advertisements, graph updates) is read and dropped by a thread of its own, which sets
     ``ready`` at the first graph update (the SDK has taken the subscription) and ``lost`` if the connection ends
     while not closed (the bridge then opens a new one before its next publish)."""
@@ -642,6 +666,9 @@ class GraphHold:
         import socket
 
         self.ready, self.lost, self._closing = threading.Event(), False, False
+        self.params: set[str] = set()  # parameter names this connection subscribes to (Bridge._hold_parameters)
+        self._marks: dict[bytes, threading.Event] = {}  # request ids awaited in the server's answers
+        self._n = 0
         host = "127.0.0.1" if host in ("", "0.0.0.0") else "::1" if host == "::" else host
         self.sock = socket.create_connection((host, port), timeout=self.TIMEOUT_S)
         try:
@@ -678,6 +705,24 @@ class GraphHold:
                                f"subscription within {cls.TIMEOUT_S:g} s")
         return hold
 
+    def subscribe_parameters(self, names: list[str]) -> bool:
+        """Subscribes this connection to the parameters names and waits until the server has taken that: the answer
+        to a getParameters sent after it, which the server handles in order (False: none within TIMEOUT_S). One
+        caller at a time (the bridge's parameters thread)."""
+        self._n += 1
+        mark = f"energyctl-hold-{self._n}".encode()
+        ev = self._marks[mark] = threading.Event()
+        try:
+            self.sock.sendall(self.text_frame(json.dumps({"op": "subscribeParameterUpdates",
+                                                          "parameterNames": names}).encode())
+                              + self.text_frame(json.dumps({"op": "getParameters", "parameterNames": [],
+                                                            "id": mark.decode()}).encode()))
+            return ev.wait(self.TIMEOUT_S)
+        except OSError:
+            return False
+        finally:
+            self._marks.pop(mark, None)
+
     @staticmethod
     def text_frame(payload: bytes) -> bytes:
         """One final text frame, masked as a client's must be (RFC 6455, 5.2)."""
@@ -695,10 +740,13 @@ class GraphHold:
             while True:
                 if not self.ready.is_set() and self.MARK in seen:
                     self.ready.set()
+                for mark, ev in list(self._marks.items()):
+                    if mark in seen:
+                        ev.set()
                 chunk = self.sock.recv(65536)
                 if not chunk:
                     break
-                seen = seen[-len(self.MARK):] + chunk
+                seen = seen[-64:] + chunk
         except OSError:  # closed
             pass
         if not self._closing:

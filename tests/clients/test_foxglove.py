@@ -424,3 +424,17 @@ def test_a_lost_graph_hold_is_taken_again_before_the_next_publish():
         assert bridge._hold is not old and st["held"] and st["hold_reconnects"] == 1 and st["graph_updates"] == 2
     finally:
         bridge.close()
+
+
+def test_the_bridge_holds_every_parameter_it_knows_before_it_publishes_their_values(stack):
+    """The parameter lock has the graph lock's hazard (GraphHold): the bridge's own connection subscribes to every
+    parameter name it read from the daemons, confirmed by the server, before the parameters thread publishes."""
+    d, ep = stack
+    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, poll_s=0.2)
+    try:
+        bridge.start()
+        assert bridge._params and wait_until(lambda: bridge._hold.params == set(bridge._params), 5.0)
+        assert {n.split(".", 1)[0] for n in bridge._subscribed_params} == {"source"}  # the listener saw them
+        assert bridge._hold_parameters() and not bridge.last_error
+    finally:
+        bridge.close()
