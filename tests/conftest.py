@@ -115,43 +115,6 @@ TEST_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_TIMEOUT_S", 
 EXIT_TIMEOUT_S = float(__import__("os").environ.get("ENERGYCTL_TEST_EXIT_TIMEOUT_S", "120"))
 BACKSTOP_S = 30.0  # faulthandler's dump and exit, after a watchdog thread that did not get to run
 
-# the guard: polls pytest's process tree every 2 s; once pytest is gone, kills what was below it last time
-_GUARD = r"""
-import os, signal, sys, time
-root, me = int(sys.argv[1]), os.getpid()
-def tree():
-    kids = {}
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                with open(f"/proc/{d}/stat", "rb") as f:
-                    fields = f.read().rsplit(b")", 1)[1].split()
-                kids.setdefault(int(fields[1]), []).append((int(d), fields[0]))
-            except (OSError, ValueError, IndexError):
-                pass
-    alive = any(p == root and st != b"Z" for ps in kids.values() for p, st in ps)
-    out, todo = [], [root]
-    while todo:
-        for p, _ in kids.get(todo.pop(), ()):
-            if p != me:
-                out.append(p)
-                todo.append(p)
-    return alive, out
-last = []
-while True:
-    alive, below = tree()
-    if not alive:
-        break
-    last = below
-    time.sleep(2.0)
-for p in last:
-    try:
-        os.kill(p, signal.SIGKILL)
-    except OSError:
-        pass
-"""
-
-
 def _on(timeout_s: float) -> bool:
     import math
 
@@ -159,29 +122,12 @@ def _on(timeout_s: float) -> bool:
 
 
 def _descendants() -> list[tuple[int, str]]:
-    """(pid, command line) of every live process below this one (from /proc; [] where there is none), the guard
-    excepted."""
+    """(pid, command line) of every live process below this one, the guard excepted."""
     import os
 
-    me, children = os.getpid(), {}
-    for d in os.listdir("/proc") if os.path.isdir("/proc") else ():
-        if not d.isdigit():
-            continue
-        try:
-            with open(f"/proc/{d}/stat", "rb") as f:
-                ppid = int(f.read().rsplit(b")", 1)[1].split()[1])
-            with open(f"/proc/{d}/cmdline", "rb") as f:
-                cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
-        except (OSError, ValueError, IndexError):
-            continue
-        children.setdefault(ppid, []).append((int(d), cmd))
-    out, todo = [], [me]
-    while todo:
-        for pid, cmd in children.get(todo.pop(), ()):
-            if pid not in _GUARD_PID:
-                out.append((pid, cmd))
-                todo.append(pid)
-    return out
+    from proc_tree import below, command
+
+    return [(pid, command(pid)) for pid in below(os.getpid(), tuple(_GUARD_PID))]
 
 
 _STDERR_FD: list[int] = []  # a dup of the terminal's stderr, taken before any test captures fd 2
@@ -195,7 +141,8 @@ def pytest_configure(config):
 
     _STDERR_FD.append(os.dup(2))
     if os.path.isdir("/proc"):
-        g = subprocess.Popen([sys.executable, "-c", _GUARD, str(os.getpid())], stdin=subprocess.DEVNULL,
+        g = subprocess.Popen([sys.executable, str(Path(__file__).with_name("proc_tree.py")), str(os.getpid())],
+                             stdin=subprocess.DEVNULL,
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         _GUARD_PID.append(g.pid)
 
