@@ -337,7 +337,7 @@ class Coordinator:
             stale = offer_staleness(None if offer is None else (offer[0], offer[3]), window, self.connected)
             if stale:
                 offer = (window, *self.layer.connect_offer(s, window, self.connected))
-                reason, z_in = f"no current offer ({stale}): ask again", incoming_range(*offer[1], offer[2])
+                reason, z_in = stale, incoming_range(*offer[1], offer[2])
             else:
                 reason, z_in = judge_announced(offer[1], offer[2], P_out, Qdot_out, saturation)
             reply = {"source": name, "accepted": reason == "", "reason": reason, "window": offer[0], "at_seq": at,

@@ -168,17 +168,22 @@ class InterconnectionLayer:
 MAX_OFFER_AGE_WINDOWS = 10
 
 
+STALE_OFFER = "no current offer"  # how a refusal for a stale offer begins (the source asks again)
+
+
 def offer_staleness(offer: tuple[int, tuple] | None, window: int, connected) -> str:
-    """Why an offer (the window it was made for, the breakers then) no longer serves an announcement arriving in
-    window with the breakers connected; "" if it does. The coordinator refuses such an announcement with
-    ``f"no current offer ({why}): ask again"`` and its replay recomputes the same."""
+    """The coordinator's refusal of an announcement arriving in window with the breakers connected whose offer (the
+    window it was made for, the breakers then) no longer serves: f"{STALE_OFFER} (why): ask again"; "" if it
+    does. Its replay recomputes the same."""
     if offer is None:
-        return "no offer"
-    if tuple(offer[1]) != tuple(connected):
-        return "the breakers changed"
-    if window - offer[0] > MAX_OFFER_AGE_WINDOWS:
-        return f"its offer is {window - offer[0]} windows old"
-    return ""
+        why = "no offer"
+    elif tuple(offer[1]) != tuple(connected):
+        why = "the breakers changed"
+    elif window - offer[0] > MAX_OFFER_AGE_WINDOWS:
+        why = f"its offer is {window - offer[0]} windows old"
+    else:
+        return ""
+    return f"{STALE_OFFER} ({why}): ask again"
 
 
 def judge_announced(box: tuple, tau_p: float, P_out: tuple[float, float], Qdot_out: tuple[float, float],

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
-from service.layer import InterconnectionLayer, judge_announced, offer_staleness
+from service.layer import STALE_OFFER, InterconnectionLayer, judge_announced, offer_staleness
 from service.logio.reader import LogError, messages, scan
 from service.plant.network import NetworkPlant
 
@@ -21,7 +21,7 @@ def is_coordinator_log(path: str | Path) -> bool:
 class Handshakes:
     """The coordinator's plug-in offers and its verdicts on announced Z^{r,out}, recomputed from the replayed layer
     (``layer``, replaced by the caller when the rig restarts). It keeps the offers per source as the coordinator does
-    (an announcement uses its source's up), so a refusal for a stale offer is recomputed too. A log without offer
+    (an announcement uses up its source's offer), so a refusal for a stale offer is recomputed too. A log without offer
     events (an older coordinator's) judges each announcement on the offer logged with it."""
 
     def __init__(self, layer: InterconnectionLayer, names: list[str], with_offers: bool = True):
@@ -42,8 +42,8 @@ class Handshakes:
         if self.with_offers:
             stale = offer_staleness(self.kept.pop(d["source"], None), seq // self.layer.per_window, d["connected"])
             if stale:
-                return f"no current offer ({stale}): ask again"
-        elif d["reason"].startswith("no current offer"):
+                return stale
+        elif d["reason"].startswith(STALE_OFFER):
             return d["reason"]
         return judge_announced(tuple(d["offer"]["box"]), d["offer"]["tau_prime_s"], tuple(d["Z_out"]["P"]),
                                tuple(d["Z_out"]["Qdot"]), d.get("saturation", ""))[0]
