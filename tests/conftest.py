@@ -78,6 +78,27 @@ def daemon_by_hand():
         d.close()
 
 
+class QueryStub:
+    """A Zenoh query's stand-in for code that answers queries: keeps the one answer (("ok" | "err", JSON body)),
+    the key it was given on, and whether it was dropped; ``n`` tells stubs apart."""
+
+    def __init__(self, n: int = 0):
+        self.n, self.got, self.key, self.dropped = n, None, None, False
+
+    def reply(self, key, body):
+        import json
+
+        self.got, self.key = ("ok", json.loads(body)), str(key)
+
+    def reply_err(self, body):
+        import json
+
+        self.got = ("err", json.loads(body))
+
+    def drop(self):
+        self.dropped = True
+
+
 class PumpingClient:
     """A blocking WebSocket test client (the Foxglove tests'): ``pump`` reads messages into ``_take`` until a
     condition holds; subclasses set ``ws`` and ``_take``, and ``PUMP_TIMEOUT_S``."""

@@ -7,7 +7,7 @@ import math
 import struct
 
 import pytest
-from conftest import SCENARIOS
+from conftest import SCENARIOS, QueryStub
 
 from clients.live import configs_from_scenario
 from schemas.codec import CMD, MEAS, Z
@@ -200,26 +200,12 @@ def test_the_query_loop_answers_every_query_a_bad_one_and_an_unencodable_reply_i
     """service.daemon.bus.serve_queries: a handler that raises is answered with its error, a reply JSON cannot encode
     (a numpy integer) is answered as an error naming why, a query handed on is not answered here, and every answered
     query is dropped; the loop ends when its channel closes."""
-    import json
 
     import numpy as np
 
     from service.daemon.bus import serve_queries
 
-    class Q:
-        def __init__(self, n):
-            self.n, self.got, self.dropped = n, None, False
-
-        def reply(self, key, text):
-            self.got = ("ok", key, json.loads(text))
-
-        def reply_err(self, text):
-            self.got = ("err", json.loads(text))
-
-        def drop(self):
-            self.dropped = True
-
-    queries = [Q(n) for n in range(4)]
+    queries = [QueryStub(n) for n in range(4)]
 
     class Channel:
         def __init__(self):
@@ -240,7 +226,7 @@ def test_the_query_loop_answers_every_query_a_bad_one_and_an_unencodable_reply_i
         return None  # handed on
 
     serve_queries(Channel(), "energyctl/x/status", handler)
-    assert queries[0].got == ("ok", "energyctl/x/status", {"n": 0})
+    assert queries[0].got == ("ok", {"n": 0}) and queries[0].key == "energyctl/x/status"
     assert queries[1].got == ("err", {"error": "ValueError: set: no such key"})
     assert queries[2].got[0] == "err" and "could not be encoded" in queries[2].got[1]["error"]
     assert queries[3].got is None and not queries[3].dropped

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import SCENARIOS
+from conftest import SCENARIOS, QueryStub
 
 from schemas.netlive import CoordinatorConfig
 from schemas.network import load_network
@@ -15,22 +15,6 @@ from service import coordinator as coordinator_module
 from service.coordinator import Coordinator
 from service.forecast import forecast_outgoing
 from service.layer import MAX_OFFER_AGE_WINDOWS
-
-
-class Query:
-    """A query's stand-in: keeps the one answer."""
-
-    def __init__(self):
-        self.got: tuple[str, dict] | None = None
-
-    def reply(self, key, body):
-        self.got = ("ok", json.loads(body))
-
-    def reply_err(self, body):
-        self.got = ("err", json.loads(body))
-
-    def drop(self):
-        pass
 
 
 @pytest.fixture
@@ -44,7 +28,7 @@ def co(monkeypatch):
 
 
 def ask(c: Coordinator, body: dict) -> tuple[str, dict]:
-    q = Query()
+    q = QueryStub()
     c._connect(q, body)
     assert q.got is not None, "no answer"
     return q.got
@@ -102,9 +86,9 @@ def test_a_request_that_breaks_the_check_gets_an_error_and_the_held_ones_survive
     """Whatever raises inside a connect (here the layer's offer) is answered as an error, and a lockstep request
     held for a later sample is still there afterwards."""
     co.cfg = co.cfg.model_copy(update={"lockstep": True})
-    held = Query()
+    held = QueryStub()
     co._connects.put((held, {"source": "S3", "controller": {}, "offer": True, "at_seq": co.seq + 5}))
-    bad = Query()
+    bad = QueryStub()
     co._connects.put((bad, {"source": "S3", "controller": {}, "offer": True}))
     monkeypatch.setattr(co.layer, "connect_offer", lambda *a: 1 / 0)
     co._take_connects()
