@@ -40,6 +40,9 @@ from schemas.scenario import (
 NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
 
 
+NETWORK_CONTROLLER_DEFAULTS = {"load_power": "reference", "nested_K_E_per_s": 200.0}  # see SourceConfig.controller
+
+
 class ModelError(Strict):
     """The controller's model of its own source, relative to the true circuit: model = true x (1 + error)."""
 
@@ -53,7 +56,13 @@ class SourceConfig(CircuitParams):
 
     limits: SourceLimits = SourceLimits()
     model_error: ModelError = ModelError()
-    controller: ControllerConfig = ControllerConfig()
+    controller: ControllerConfig = Field(
+        default=ControllerConfig(**NETWORK_CONTROLLER_DEFAULTS),
+        description="its controller; on a network two defaults differ: load_power = 'reference' (the law's "
+                    "feed-forward is the layer's allocation -P^{r,in}, its share of the load, not its own lines' "
+                    "power) and nested_K_E_per_s = 200 /s (the layer sets the voltage once per window; a stiff "
+                    "terminal-energy loop, 1 500 /s, held each terminal where the lines put it and left the sharing "
+                    "2.3 pp off)")
     share: Pos = Field(default=1.0, description="its share of the network's load under the interconnection layer "
                                                 "(relative to the other sources' shares)")
     connected: bool = Field(default=True, description="its line breakers start closed; false: it starts idle, "
@@ -61,6 +70,14 @@ class SourceConfig(CircuitParams):
     v0_V: Pos | None = Field(default=None, description="initial terminal voltage with start = \"rest\", V; "
                                                        "default: the network's nominal_v_V (a steady start "
                                                        "computes it)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _allocation_is_the_load(cls, data):
+        """controller.load_power: 'reference' unless the scenario names it (see the controller field)."""
+        if isinstance(data, dict) and isinstance(data.get("controller"), dict):
+            data = {**data, "controller": {**NETWORK_CONTROLLER_DEFAULTS, **data["controller"]}}
+        return data
 
     def model_params(self) -> CircuitParams:
         """The controller's (wrong) model of this source."""
@@ -149,7 +166,7 @@ class LayerConfig(Strict):
         default=0.5, description="per window, every source's v_ref moves by this x (nominal - the mean bus "
                                  "voltage over the window); 0: off")
     v_ref_mode: Literal["common", "per-source"] = Field(
-        default="common", description="common: one v_ref offset for all; per-source: each source's v_ref moves "
+        default="per-source", description="common: one v_ref offset for all; per-source: each source's v_ref moves "
                                           "to its own terminal's window mean plus that correction, which removes "
                                           "the sharing error a common v_ref leaves (P at a terminal = P^{r,in} "
                                           "v_ref / v at steady state)")
@@ -158,8 +175,11 @@ class LayerConfig(Strict):
                                                               "its age, at most this long, s; 0: used as it came "
                                                               "(2 ms: 1 ms late messages keep the two-source "
                                                               "figures; 10 ms diverged 5 ms late ones)")
-    idle_power_W: NonNeg = Field(default=30.0, description="below this |power| a source's lines count as idle "
-                                                           "(excluded from the live sum; its controller idles)")
+    idle_power_W: NonNeg = Field(default=0.0, description="below this |power| a source's lines count as idle "
+                                                          "(excluded from the live sum; its controller idles), W. 0: "
+                                                          "only a disconnected source idles (the nested law holds "
+                                                          "zero and reversed power); the paper's fblc needs about "
+                                                          "30 W, its output y_z losing control of u at zero current")
     idle_tau_s: Pos = Field(default=0.005, description="an idle source moves u to v_ref - 0.4 ohm x i with this time "
                                                        "constant, s")
     plug_in_ramp_s: NonNeg = Field(default=0.0, description="live-sum: a source that connects takes its share "

@@ -146,6 +146,9 @@ class LimitsConfig(Strict):
     u_max_V: Finite = Field(default=200.0, description="highest source voltage the controller commands, V")
     du_dt_max_V_per_s: Pos = Field(default=2.0e5, description="largest |du/dt| the controller commands, V/s")
     i_floor_A: Pos = Field(default=0.5, description="current floor where a law divides by i, A")
+    i_max_A: Pos | None = Field(
+        default=None, description="largest |i| the law asks of the source branch, A (nested: the branch-power "
+                                  "reference is clipped to +-v i_max; pi: the current reference); None: no limit")
 
     @model_validator(mode="after")
     def _order(self) -> LimitsConfig:
@@ -154,7 +157,7 @@ class LimitsConfig(Strict):
         return self
 
 
-ControllerKind = Literal["fblc", "smc", "lqr", "bm", "fixed"]
+ControllerKind = Literal["nested", "fblc", "smc", "lqr", "bm", "pi", "fixed"]
 
 
 class ControllerConfig(Strict):
@@ -168,9 +171,12 @@ class ControllerConfig(Strict):
     ``continuous`` evaluates Eqn ControlImp as printed, du/dt = (u di/dt - u_z)/i.
     """
 
-    kind: ControllerKind = Field(default="fblc", description="control law: fblc energy feedback linearisation, "
-                                                             "smc energy sliding mode, lqr proportional baseline, bm "
-                                                             "Brayton-Moser baseline, fixed du/dt = 0")
+    kind: ControllerKind = Field(default="nested", description="control law: nested energy-space control on the "
+                                                               "terminal energy and the branch power (holds both "
+                                                               "directions of power), fblc the paper's energy feedback "
+                                                               "linearisation, smc energy sliding mode, lqr "
+                                                               "proportional baseline, bm Brayton-Moser baseline, pi "
+                                                               "cascaded PI baseline, fixed du/dt = 0")
     v_ref_V: Pos = Field(default=80.0, description="terminal voltage reference, V")
     K_per_s: Pos = Field(default=2000.0, description="energy-space gain K (1/s)")
     mapping: Literal["exact", "continuous"] = Field(
@@ -182,6 +188,19 @@ class ControllerConfig(Strict):
         "K_E C (v^2 - v_ref^2) / 2, so the stored energy converges at rate K_E whatever the load",
     )
     K_E_per_s: Pos = Field(default=100.0, description="energy regulation rate for regulation='energy' (1/s)")
+    nested_K_u_per_s: Pos = Field(
+        default=10000.0, description="nested: rate (1/s) at which its output sigma, the branch power's error and "
+                                     "its rate, decays over each period (sigma(T) = sigma(0) exp(-K_u T))")
+    nested_K_P_per_s: Pos = Field(
+        default=6000.0, description="nested: rate (1/s) at which the branch power P_b = v i converges to its "
+                                    "reference P_l - K_E (E_C - E_C,ref)")
+    nested_K_E_per_s: Pos = Field(
+        default=1500.0, description="nested: rate K_E (1/s) at which the terminal energy E_C = C v^2 / 2 converges "
+                                    "to C v_ref^2 / 2")
+    pi_current_bw_per_s: Pos = Field(
+        default=2500.0, description="pi: current-loop bandwidth w_i (1/s, rad/s): Kp_i = L w_i, Ki_i = R w_i")
+    pi_voltage_bw_per_s: Pos = Field(
+        default=400.0, description="pi: voltage-loop bandwidth w_v (1/s, rad/s): Kp_v = C w_v, Ki_v = C w_v^2 / 4")
     cancel_tangent_energy: bool = Field(
         default=True,
         description="True: u_z cancels eta - 4E_t so e decays at exactly K; False: paper's general form "
@@ -217,8 +236,9 @@ class ControllerConfig(Strict):
                                         "the power the neighbours announce (paper Eqn PsiMap; the local fallback "
                                         "when they are silent). The measured i_load's noise (0.05 A: 4 W at 80 V) "
                                         "was most of the commands' noise, and what made a lost or late command cost")
-    observer_gain: Annotated[float, Field(ge=0, le=1)] = Field(
-        default=0.0, description="where the delay prediction starts: 0 = the raw sample (i, v, u); g in (0, 1] = a "
+    observer_gain: Annotated[float, Field(ge=0, le=1)] | None = Field(
+        default=None, description="where the delay prediction starts: None = the law's default (0.15 for nested, "
+                                  "0 for the others); 0 = the raw sample (i, v, u); g in (0, 1] = a "
                                  "model-based estimate x = x- + g (y - x-), x- the previous estimate carried over "
                                  "one period by the circuit model at the rate the plant applied (1: the sample). "
                                  "Sensor noise on u - v drives di/dt through 1/L over the predicted periods; at 1 kHz "

@@ -53,9 +53,10 @@ class Coordinator:
     """See the module docstring. ``open()``, then ``run(stop)`` on a thread, then ``close()``."""
 
     def __init__(self, cfg: CoordinatorConfig, net: NetworkScenario, impl: str = "auto"):
-        if net.layer.v_ref_mode == "per-source":
-            raise ValueError("layer.v_ref_mode: 'per-source' needs each source's mode every sample; the live "
-                             "coordinator supports 'common'")
+        if net.layer.v_ref_mode == "per-source" and net.layer.idle_power_W > 0.0:
+            raise ValueError("layer.v_ref_mode: 'per-source' with layer.idle_power_W > 0 needs each source's mode "
+                             "every sample, which only its daemon knows; live, use idle_power_W = 0 (a connected "
+                             "source is then active) or v_ref_mode = 'common'")
         if any(ln.delay_s or ln.loss or ln.silent_from_s is not None for ln in net.links.values()):
             raise ValueError("links: delay, loss and silence of the interaction messages are an offline model; live, "
                              "the network is the link (remove the links table)")
@@ -256,7 +257,8 @@ class Coordinator:
             rec.offer(self.t_tick, t, (seq, t, sum(bus_v) / len(bus_v) if bus_v else 0.0, sum(load_P),
                                        bool(bus_v)))
         layer.accumulate(bus_v, v, P, load_P)
-        win_k, moves = layer.window_end(seq, connected, [True] * ns, [False] * ns)
+        # with idle_power_W = 0 a connected source is active (it idles only while disconnected)
+        win_k, moves = layer.window_end(seq, connected, [True] * ns, list(connected))
         if win_k is not None:
             self.window = win_k
             if layer.active:

@@ -135,7 +135,7 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
                 if len(out["mismatches"]) < 5:
                     out["mismatches"].append({"seq": k, "source": n, "logged": logged, "replayed": got})
         layer.accumulate([tk["bus_v_mean"]] if tk["has_buses"] else [], v, P, [tk["load_W"]])
-        layer.window_end(k, connected, [True] * len(names), [False] * len(names))
+        layer.window_end(k, connected, [True] * len(names), list(connected))  # as the coordinator: active = connected
     out["identical"] = (out["n_mismatches"] == 0 and not out["verdicts_differing"] and not out["offers_differing"]
                         and out["samples"] > 0)
     return out

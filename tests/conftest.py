@@ -12,8 +12,10 @@ ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
 DATA = ROOT / "tests" / "data"  # files the tests read (a log recorded by an earlier release)
 
-# an ideal setting: no noise, no delay, exact model
-IDEAL = {"timing": {"control_rate_hz": 10000.0, "plant_step_s": 1e-5, "duration_s": 0.1}}
+# an ideal setting: no noise, no delay, exact model; the paper's law (fblc), whose claims most tests check; a test
+# of the default law says controller={"kind": "nested", ...}
+IDEAL = {"timing": {"control_rate_hz": 10000.0, "plant_step_s": 1e-5, "duration_s": 0.1},
+         "controller": {"kind": "fblc"}}
 
 
 def scenario(**sections):

@@ -12,7 +12,7 @@ from schemas.scenario import ScenarioError, load_scenario
 
 EMBEDDED = Path(__file__).parent.parent / "embedded"
 DEMO_SCENARIO = EMBEDDED / "demo.toml"
-CONTROLLERS = ("fblc", "smc", "lqr", "bm", "fixed")
+CONTROLLERS = ("nested", "fblc", "smc", "lqr", "bm", "pi", "fixed")
 
 
 def is_network_file(path: str) -> bool:

@@ -20,8 +20,9 @@ from service import __version__
 DEMO_REALTIME_HZ = 2000.0
 DEMO_REALTIME_DELAY = 16
 DEMO_REALTIME_S = 2.0  # "a few seconds"
-REALTIME_STACK_NOTE = ("every realtime stack also runs controller.load_power=\"reference\" "
-                       "controller.regulation=\"energy\" unless the scenario or --set names them")
+REALTIME_STACK_NOTE = ("every realtime stack also runs controller.load_power=\"reference\", "
+                       "controller.regulation=\"energy\" and the nested law at 2000/1000/300 /s (K_u/K_P/K_E) "
+                       "unless the scenario or --set names them")
 DEMO_REALTIME_SETS = ["controller.K_per_s=1500.0", "timing.plant_step_s=5e-5", "controller.observer_gain=0.15"]
 
 

@@ -14,11 +14,11 @@ from service.core.control import CoreBase
 from service.core.energy import RLCEnergy
 from service.core.types import Incoming, Sample
 
-KIND_CODE = {"fixed": 0, "lqr": 1, "bm": 2, "fblc": 3, "smc": 4}
+KIND_CODE = {"fixed": 0, "lqr": 1, "bm": 2, "fblc": 3, "smc": 4, "nested": 5, "pi": 6}
 # output buffer layout: service/core/kernel.h, enum O_*
 (O_DU, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1, O_SEQ, O_T, O_STEPS,
  O_COUNT, O_HAS_EST) = range(17)
-O_EST, O_FITV, O_FITS, O_ZRUN, O_DU_NEXT, O_LATE = 17, 35, 38, 41, 43, 44
+O_EST, O_FITV, O_FITS, O_ZRUN, O_DU_NEXT, O_LATE, O_ILIM = 17, 35, 38, 41, 43, 44, 45
 ROW = 9  # run_batch input row: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped
 
 
@@ -68,6 +68,10 @@ class KernelOutput:
     @property
     def late(self) -> bool:
         return self._b[O_LATE] != 0.0
+
+    @property
+    def i_limited(self) -> bool:
+        return self._b[O_ILIM] != 0.0
 
     @property
     def seq(self) -> int:
@@ -129,7 +133,7 @@ class CompiledCore(CoreBase):
         v_ref, K, cancel_Et, alpha, phi, decay = self._gains
         self._k.set_params(KIND_CODE[self._kind], int(self._continuous), int(bool(cancel_Et)), int(self._plan),
                            (v_ref, K, alpha, phi, decay), self._lqr, self._bm, self._lim, self._keC, self._late_tol,
-                           self._obs, int(self._load_ref))
+                           self._obs, int(self._load_ref), self._nested, self._pi[:4])
 
     def reset(self) -> None:
         self._k.reset()

@@ -85,10 +85,10 @@ def predict_in_range(i: float, v: float, u: float, P: float, r: float, T: float,
 
 
 def predict_with_sensitivity(i: float, v: float, u: float, P: float, r: float, T: float, n: int,
-                             R: float, L: float, C: float) -> tuple[float, float, float, float]:
-    """Nominal model over T at rate r, plus the sensitivity s_i = d i(T)/d r (A per V/s).
+                             R: float, L: float, C: float) -> tuple[float, float, float, float, float]:
+    """Nominal model over T at rate r, plus the sensitivities s_i = d i(T)/d r (A per V/s), s_v = d v(T)/d r.
 
-    Returns (i(T), v(T), u(T), s_i). The sensitivity obeys the linearised model
+    Returns (i(T), v(T), u(T), s_i, s_v). The sensitivity obeys the linearised model
     L ds_i/dt = s_u - R s_i - s_v, C ds_v/dt = s_i + (P / v^2) s_v, s_u = t, s(0) = 0.
     """
     h = T / n
@@ -130,7 +130,7 @@ def predict_with_sensitivity(i: float, v: float, u: float, P: float, r: float, T
         sv += h / 6.0 * (k1sv + 2.0 * k2sv + 2.0 * k3sv + k4sv)
         u = u1
         tau += h
-    return i, v, u, si
+    return i, v, u, si, sv
 
 
 def solve_rate_for_target(R: float, T: float, i1: float, u1: float, si: float, y_target: float) -> float:
@@ -152,6 +152,45 @@ def solve_rate_for_target(R: float, T: float, i1: float, u1: float, si: float, y
     return c / q if q != 0.0 else 0.0
 
 
+def nested_output(i: float, v: float, u: float, P: float, P_ff: float, Pdot: float, R: float, L: float, C: float,
+                  v_ref: float, K_P: float, K_E: float, i_max: float) -> tuple[float, float, float, float, bool]:
+    """The nested law's output sigma (W/s) at the state (i A, v V, u V), with the load power P (W) the terminal
+    delivers, the power P_ff (W) the branch is to carry besides the energy correction (P itself, or the neighbours'
+    announcement or the layer's allocation -P^{r,in}: controller.load_power) and their rate Pdot (W/s), with its
+    gradient (d sigma/di W/(s A), d sigma/dv W/(s V), d sigma/du W/(s V)) and whether the branch-power
+    reference is at the current limit:
+
+        E_C     = C v^2 / 2,          p_C = dE_C/dt = v i - P              terminal (capacitor) energy and its rate
+        P_b     = v i,                dP_b/dt = i dv/dt + v di/dt          the branch's power into the terminal
+        P_b^ref = P_ff - K_E (E_C - C v_ref^2 / 2),  dP_b^ref/dt = Pdot - K_E p_C   (clipped to +-v i_max)
+        sigma   = (dP_b/dt - dP_b^ref/dt) + K_P (P_b - P_b^ref)
+
+    sigma has relative degree one in du/dt with coefficient v / L (never zero on a bus), so holding it at zero
+    leaves P_b -> P_b^ref at rate K_P and then E_C -> E_C,ref at rate K_E, for either sign of P and through zero.
+    i_max <= 0: no limit."""
+    dv = (i - P / v) / C
+    di = (u - R * i - v) / L
+    Pb = v * i
+    dPb = dv * i + v * di
+    P_ref = P_ff - K_E * (0.5 * C * (v * v - v_ref * v_ref))
+    dP_ref = Pdot - K_E * (Pb - P)
+    gr_i, gr_v = 0.0, -K_E * C * v  # d P_ref / d(i, v)
+    gd_i, gd_v = -K_E * v, -K_E * i  # d dP_ref / d(i, v)
+    limited = False
+    if i_max > 0.0:
+        P_max = v * i_max
+        if P_ref > P_max or P_ref < -P_max:
+            im = i_max if P_ref > 0.0 else -i_max
+            P_ref, dP_ref = v * im, dv * im
+            gr_i, gr_v = 0.0, im
+            gd_i, gd_v = im / C, im * P / (v * v * C)
+            limited = True
+    sigma = dPb - dP_ref + K_P * (Pb - P_ref)
+    g_i = i / C + dv - v * R / L - gd_i + K_P * (v - gr_i)
+    g_v = i * P / (v * v * C) + di - v / L - gd_v + K_P * (i - gr_v)
+    return sigma, g_i, g_v, v / L, limited
+
+
 def y_reference(P_in: float, v: float, v_ref: float, k_e_half_C: float) -> float:
     """y_ref (W). k_e_half_C = 0: the paper's P^{r,in} v_ref / v (Eqn OutputRefRLCReg); otherwise
     P^{r,in} + K_E C (v^2 - v_ref^2) / 2, with k_e_half_C = K_E C / 2 (W/V^2)."""
@@ -163,7 +202,8 @@ def y_reference(P_in: float, v: float, v_ref: float, k_e_half_C: float) -> float
 class Output:
     """What one step returns (reused each step; copy what you keep)."""
 
-    __slots__ = ("seq", "t", "du_dt", "du_dt_next", "du_dt_raw", "u_z", "y_z", "y_ref", "e", "limited", "late", "est",
+    __slots__ = ("seq", "t", "du_dt", "du_dt_next", "du_dt_raw", "u_z", "y_z", "y_ref", "e", "limited", "late",
+                 "i_limited", "est",
                  "z_out0", "z_out1", "i_pred", "v_pred", "u_pred")
 
     def __init__(self) -> None:
@@ -172,6 +212,7 @@ class Output:
         self.i_pred = self.v_pred = self.u_pred = self.z_out0 = self.z_out1 = 0.0
         self.limited = False
         self.late = False  # late commands detected at this sample (late_detect_V): in-flight ones taken as 0
+        self.i_limited = False  # the law's current reference is at limits.i_max_A (nested)
         self.est: RLCEnergy | None = None
 
 
@@ -183,10 +224,38 @@ def core_metadata(controller: ControllerConfig, model: CircuitParams, period_s: 
                        "delay_samples": delay})
 
 
+# the most each of the nested law's rates may be, per sample period: K_u T <= 2, K_P T <= 1, K_E T <= 0.3
+NESTED_RATE_PER_PERIOD = (2.0, 1.0, 0.3)
+NESTED_OBSERVER_GAIN = 0.15  # nested: commands with a quarter of the noise, same regulation (docs/decisions/0030)
+
+
+def nested_rates(cfg: ControllerConfig, period_s: float) -> tuple[float, float, float]:
+    """The nested law's rates in use (K_u, K_P, K_E, 1/s): the configured ones, each capped at what one sample
+    period of period_s (s) carries (NESTED_RATE_PER_PERIOD / T). The defaults are for 10 kHz; at 1 kHz with a
+    20 V-per-period slew limit they asked for corrections the slew could not give, and rang up until v diverged,
+    while the capped ones (2000, 1000, 300 /s) held every step of the envelope (docs/decisions/0030)."""
+    a, b, c = NESTED_RATE_PER_PERIOD
+    T = period_s
+    return min(cfg.nested_K_u_per_s, a / T), min(cfg.nested_K_P_per_s, b / T), min(cfg.nested_K_E_per_s, c / T)
+
+
+def observer_gain(cfg: ControllerConfig) -> float:
+    """The observer gain in use: controller.observer_gain, or the law's default when it is None (nested 0.15, the
+    others 0: the paper cases settle later with it)."""
+    if cfg.observer_gain is not None:
+        return cfg.observer_gain
+    return NESTED_OBSERVER_GAIN if cfg.kind == "nested" else 0.0
+
+
 def effective_gain(cfg: ControllerConfig, model: CircuitParams) -> float:
-    """K used for tau' in the feasibility ranges (paper: K2 for the proportional law, K for FBLC)."""
+    """K used for tau' in the feasibility ranges (paper: K2 for the proportional law, K for FBLC; nested: K_P, the
+    rate of its branch power; pi: its voltage loop's bandwidth)."""
     if cfg.kind in ("fblc", "smc"):
         return cfg.K_per_s
+    if cfg.kind == "nested":  # the branch power, which shapes the port's transients, converges at K_P
+        return cfg.nested_K_P_per_s
+    if cfg.kind == "pi":
+        return cfg.pi_voltage_bw_per_s
     if cfg.kind == "lqr":
         return abs(cfg.lqr_K2)
     if cfg.kind == "bm":  # real part of the linear closed loop's poles
@@ -227,8 +296,12 @@ class CoreBase:
         self._keC = 0.5 * c.K_E_per_s * self._C if c.regulation == "energy" else 0.0
         self._plan = c.plan_next_period
         self._late_tol = c.late_detect_V
-        self._obs = c.observer_gain
+        self._obs = observer_gain(c)
         self._load_ref = c.load_power == "reference"
+        K_u, K_P, K_E = nested_rates(c, self.T)
+        self._nested = (K_P, K_E, lim.i_max_A or 0.0, math.exp(-K_u * self.T))
+        wi, wv = c.pi_current_bw_per_s, c.pi_voltage_bw_per_s  # pi: gains from the loops' bandwidths
+        self._pi = (self._L * wi, self._R * wi, self._C * wv, 0.25 * self._C * wv * wv, lim.i_max_A or 0.0)
 
     def run_batch(self, rows, du_out, next_out=None) -> None:
         """Step n rows (n x w floats, w >= 9: seq, t, i, v, u, i_load, P_r_in, P_r_in_dot, stepped, then anything;
@@ -307,6 +380,8 @@ class ControlCore(CoreBase):
         self._x_seq = -2  # the observer (observer_gain > 0): seq of its last estimate, the estimate (i, v, u) and
         self._x_hat = (0.0, 0.0, 0.0)  # the load power P_load (W) carried with it
         self._x_P = 0.0
+        self._pi_x = (0.0, 0.0)  # pi: the integrals of the voltage error (V s) and of the current error (A s)
+        self._pi_u = 0.0  # pi: the source voltage it asks for at this step (V)
         self.estimator.reset()
         self.steps = 0
 
@@ -372,7 +447,9 @@ class ControlCore(CoreBase):
 
         # --- state at the start of the period this command will act on (delay prediction) ---
         # the load power P_load (W): measured at the port, or as the neighbours announce it (controller.load_power)
-        P_load = -inc.P_r_in if self._load_ref else s.v * s.i_load
+        # (nested: always measured; the announced or allocated power is its branch power's feed-forward only, as
+        # the power its terminal delivers on a network differs from its allocation while the sources re-share)
+        P_load = -inc.P_r_in if self._load_ref and self._kind != "nested" else s.v * s.i_load
         Pdot = -inc.P_r_in_dot  # the load's rate as announced by the neighbour
         i_p, v_p, u_p = self._observe(s, late, P_load) if self._obs > 0.0 else (s.i, s.v, s.u)
         n = self.n_pred
@@ -387,8 +464,12 @@ class ControlCore(CoreBase):
         y_ref = y_reference(inc.P_r_in, s.v, self.cfg.v_ref_V, self._keC)
         out.y_z, out.y_ref, out.e = y_z, y_ref, y_z - y_ref
 
+        if self._kind == "pi":
+            self._pi_step(s)
         # --- the command for the period from t_{k+d}, and the plan for the one after ---
+        self._ilim = False
         r, raw, u_z = self._law(i_p, v_p, u_p, P_load, inc, d, self.r_prev)
+        out.i_limited = self._ilim
         plan = 0.0
         if self._plan:
             i1, v1, u1 = predict_in_range(i_p, v_p, u_p, P_load + Pdot * (d + 0.5) * T, r, T, n, R, L, C, u_min,
@@ -406,6 +487,30 @@ class ControlCore(CoreBase):
         self.pending[seq % (d + 1)] = (seq, r, plan)
         self.steps += 1
         return out
+
+    def _pi_step(self, s: Sample) -> None:
+        """The cascaded PI baseline on the raw sample: voltage PI -> current reference (with the measured load
+        current as feedforward) -> current PI -> source voltage u_des (V), with the voltage v as feedforward;
+        integrals held while their output is at a limit (anti-windup). The law then ramps u to u_des over the
+        period the command acts on, from where the commands in flight leave it."""
+        kp_i, ki_i, kp_v, ki_v, i_max = self._pi
+        u_min, u_max = self._lim[0], self._lim[1]
+        xv, xi = self._pi_x
+        ev = self.cfg.v_ref_V - s.v
+        i_ref = s.i_load + kp_v * ev + ki_v * xv
+        i_sat = i_ref
+        if i_max > 0.0:
+            i_sat = min(max(i_ref, -i_max), i_max)
+        ei = i_sat - s.i
+        u_des = s.v + self._R * s.i + kp_i * ei + ki_i * xi
+        u_sat = min(max(u_des, u_min), u_max)
+        T = self.T
+        if u_sat == u_des:
+            xi += ei * T
+            if i_sat == i_ref:
+                xv += ev * T
+        self._pi_x = (xv, xi)
+        self._pi_u = u_sat
 
     def _law(self, i_p: float, v_p: float, u_p: float, P_load: float, inc: Incoming, dd: int,
              r_prev: float) -> tuple[float, float, float]:
@@ -430,6 +535,22 @@ class ControlCore(CoreBase):
             u_ref = v_ref + R * P_l / v_ref
             u_des = u_ref - K1 * (i_p - i_ref) - K2 * (v_p - v_ref)
             r = (u_des - u_p) / T
+        elif kind == "pi":
+            r = (self._pi_u - u_p) / T
+        elif kind == "nested":
+            K_P, K_E, i_max, decay_u = self._nested
+            r_lo = max(-r_max, (u_min - u_p) / T)
+            r_hi = max(r_lo, min(r_max, (u_max - u_p) / T))
+            r0 = min(max(r_prev, r_lo), r_hi)
+            Pd = -inc.P_r_in_dot
+            P0 = P_load + Pd * dd * T  # the terminal's load power at the period's start (measured)
+            F0 = (-inc.P_r_in if self._load_ref else P_load) + Pd * dd * T  # the branch's feed-forward there
+            i1, v1, u1, si, sv = predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, self.n_pred, R, L, C)
+            sig0 = nested_output(i_p, v_p, u_p, P0, F0, Pd, R, L, C, v_ref, K_P, K_E, i_max)[0]
+            sig1, g_i, g_v, g_u, self._ilim = nested_output(i1, v1, u1, P0 + Pd * T, F0 + Pd * T, Pd, R, L, C, v_ref,
+                                                            K_P, K_E, i_max)
+            r = r0 + (sig0 * decay_u - sig1) / (g_i * si + g_v * sv + g_u * T)
+            u_z = u_p * (u_p - R * i_p - v_p) / L - i_p * r
         elif kind == "bm":
             K1, K2, K3, Pi = self._bm
             dv = (i_p - P_app / v_p) / C
@@ -461,7 +582,7 @@ class ControlCore(CoreBase):
                 r_lo = max(-r_max, (u_min - u_p) / T)
                 r_hi = max(r_lo, min(r_max, (u_max - u_p) / T))
                 r0 = min(max(r_prev, r_lo), r_hi)
-                i1, v1, u1, si = predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, self.n_pred, R, L, C)
+                i1, v1, u1, si, _ = predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, self.n_pred, R, L, C)
                 if kind == "fblc":
                     e1 = e_p * decay
                     if not cancel_Et:

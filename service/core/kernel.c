@@ -53,7 +53,8 @@ static void predict_in_range(double *pi, double *pv, double *pu, double P, doubl
 }
 
 static void predict_with_sensitivity(double i, double v, double u, double P, double r, double T, int n, double R,
-                                     double L, double C, double *pi, double *pv, double *pu, double *psi)
+                                     double L, double C, double *pi, double *pv, double *pu, double *psi,
+                                     double *psv)
 {
     double h = T / n, hh = 0.5 * h;
     double si = 0.0, sv = 0.0, tau = 0.0;
@@ -95,7 +96,7 @@ static void predict_with_sensitivity(double i, double v, double u, double P, dou
         u = u1;
         tau = tau + h;
     }
-    *pi = i; *pv = v; *pu = u; *psi = si;
+    *pi = i; *pv = v; *pu = u; *psi = si; *psv = sv;
 }
 
 static double solve_rate_for_target(double R, double T, double i1, double u1, double si, double y_target)
@@ -119,8 +120,65 @@ static double y_reference(double P_in, double v, double v_ref, double keC)
     return P_in + keC * (v * v - v_ref * v_ref);
 }
 
+/* control.nested_output: sigma (W/s) and its gradient g[0..2] = d sigma / d(i, v, u); returns 1 at the current
+   limit */
+static int nested_output(double i, double v, double u, double P, double P_ff, double Pdot, double R, double L,
+                         double C, double v_ref, double K_P, double K_E, double i_max, double *sigma, double *g)
+{
+    double dv = (i - P / v) / C;
+    double di = (u - R * i - v) / L;
+    double Pb = v * i;
+    double dPb = dv * i + v * di;
+    double P_ref = P_ff - K_E * (0.5 * C * (v * v - v_ref * v_ref));
+    double dP_ref = Pdot - K_E * (Pb - P);
+    double gr_i = 0.0, gr_v = -K_E * C * v;
+    double gd_i = -K_E * v, gd_v = -K_E * i;
+    int limited = 0;
+    if (i_max > 0.0) {
+        double P_max = v * i_max;
+        if (P_ref > P_max || P_ref < -P_max) {
+            double im = P_ref > 0.0 ? i_max : -i_max;
+            P_ref = v * im;
+            dP_ref = dv * im;
+            gr_i = 0.0;
+            gr_v = im;
+            gd_i = im / C;
+            gd_v = im * P / (v * v * C);
+            limited = 1;
+        }
+    }
+    *sigma = dPb - dP_ref + K_P * (Pb - P_ref);
+    g[0] = i / C + dv - v * R / L - gd_i + K_P * (v - gr_i);
+    g[1] = i * P / (v * v * C) + di - v / L - gd_v + K_P * (i - gr_v);
+    g[2] = v / L;
+    return limited;
+}
+
+/* ControlCore._pi_step: the cascaded PI baseline on the raw sample */
+static void pi_step(Kernel *k, double si_, double sv, double si2)
+{
+    double xv = k->pi_xv, xi = k->pi_xi;
+    double ev = k->v_ref - sv;
+    double i_ref = si2 + k->kp_v * ev + k->ki_v * xv;
+    double i_sat = i_ref;
+    if (k->i_max > 0.0)
+        i_sat = PYMIN(PYMAX(i_ref, -k->i_max), k->i_max);
+    double ei = i_sat - si_;
+    double u_des = sv + k->R * si_ + k->kp_i * ei + k->ki_i * xi;
+    double u_sat = PYMIN(PYMAX(u_des, k->u_min), k->u_max);
+    if (u_sat == u_des) {
+        xi = xi + ei * k->T;
+        if (i_sat == i_ref)
+            xv = xv + ev * k->T;
+    }
+    k->pi_xv = xv;
+    k->pi_xi = xi;
+    k->pi_u = u_sat;
+}
+
 static void kernel_reset(Kernel *k)
 {
+    k->pi_xv = k->pi_xi = k->pi_u = 0.0;
     k->has_t = 0;
     k->t_last = k->S0 = k->S1 = k->S2 = 0.0;
     for (int c = 0; c < 3; c++) {
@@ -252,7 +310,7 @@ static void remember(Kernel *k, double seq, double r, double plan)
 
 /* ControlCore._law: du/dt within the limits for the period from t_{k+dd}, from the state predicted there; *raw
    before the limits, *u_zp the u_z it implies. */
-static double law(const Kernel *k, double i_p, double v_p, double u_p, double P_load, double P_in, double P_in_dot,
+static double law(Kernel *k, double i_p, double v_p, double u_p, double P_load, double P_in, double P_in_dot,
                   int dd, double r_prev, double *raw_p, double *u_zp)
 {
     const double R = k->R, L = k->L, C = k->C, T = k->T;
@@ -270,6 +328,22 @@ static double law(const Kernel *k, double i_p, double v_p, double u_p, double P_
         double u_ref = v_ref + R * P_l / v_ref;
         double u_des = u_ref - k->lK1 * (i_p - i_ref) - k->lK2 * (v_p - v_ref);
         r = (u_des - u_p) / T;
+    } else if (k->kind == K_PI) {
+        r = (k->pi_u - u_p) / T;
+    } else if (k->kind == K_NESTED) {
+        double r_lo = PYMAX(-r_max, (u_min - u_p) / T);
+        double r_hi = PYMAX(r_lo, PYMIN(r_max, (u_max - u_p) / T));
+        double r0 = PYMIN(PYMAX(r_prev, r_lo), r_hi);
+        double Pd = -P_in_dot;
+        double P0 = P_load + Pd * (double)dd * T;
+        double F0 = (k->load_ref ? -P_in : P_load) + Pd * (double)dd * T;
+        double i1, v1, u1, si, sv, sig0, sig1, g0[3], g[3];
+        predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, k->n_pred, R, L, C, &i1, &v1, &u1, &si, &sv);
+        nested_output(i_p, v_p, u_p, P0, F0, Pd, R, L, C, v_ref, k->nK_P, k->nK_E, k->i_max, &sig0, g0);
+        k->ilim = nested_output(i1, v1, u1, P0 + Pd * T, F0 + Pd * T, Pd, R, L, C, v_ref, k->nK_P, k->nK_E,
+                                k->i_max, &sig1, g);
+        r = r0 + (sig0 * k->n_decay - sig1) / (g[0] * si + g[1] * sv + g[2] * T);
+        u_z = u_p * (u_p - R * i_p - v_p) / L - i_p * r;
     } else if (k->kind == K_BM) {
         double dv = (i_p - P_app / v_p) / C;
         double u_des = R * i_p + v_ref - L * (k->bPi / (v_p * v_p) + k->bK3) * dv - k->bK1 * (v_p - v_ref)
@@ -304,8 +378,9 @@ static double law(const Kernel *k, double i_p, double v_p, double u_p, double P_
             double r_lo = PYMAX(-r_max, (u_min - u_p) / T);
             double r_hi = PYMAX(r_lo, PYMIN(r_max, (u_max - u_p) / T));
             double r0 = PYMIN(PYMAX(r_prev, r_lo), r_hi);
-            double i1, v1, u1, sens;
-            predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, k->n_pred, R, L, C, &i1, &v1, &u1, &sens);
+            double i1, v1, u1, sens, sens_v;
+            predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, k->n_pred, R, L, C, &i1, &v1, &u1, &sens,
+                                     &sens_v);
             double e1;
             if (k->kind == K_FBLC) {
                 e1 = e_p * decay;
@@ -394,7 +469,8 @@ int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double s
     }
 
     /* state at the start of the period this command will act on */
-    double P_load = k->load_ref ? -P_in : sv * si2;  /* ControlCore.step: controller.load_power */
+    /* ControlCore.step: controller.load_power (nested: always measured; the reference is its feed-forward) */
+    double P_load = k->load_ref && k->kind != K_NESTED ? -P_in : sv * si2;
     double Pdot = -P_in_dot;
     double i_p = si_, v_p = sv, u_p = su;
     if (k->obs > 0.0)
@@ -412,7 +488,11 @@ int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double s
 
     /* the command for the period from t_{k+d}, and the plan for the one after */
     double raw, u_z, raw1, u_z1;
+    if (k->kind == K_PI)
+        pi_step(k, si_, sv, si2);
+    k->ilim = 0;
     double r = law(k, i_p, v_p, u_p, P_load, P_in, P_in_dot, d, k->r_prev, &raw, &u_z);
+    o[O_ILIM] = k->ilim ? 1.0 : 0.0;
     double plan = 0.0;
     if (k->plan) {
         double i1 = i_p, v1 = v_p, u1 = u_p;
@@ -468,11 +548,12 @@ static void Kernel_dealloc(Kernel *self)
 
 static PyObject *Kernel_set_params(Kernel *self, PyObject *args)
 {
-    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)dddi", &self->kind, &self->continuous, &self->cancel_Et,
-                          &self->plan,
+    if (!PyArg_ParseTuple(args, "iiii(ddddd)(dd)(dddd)(dddd)dddi(dddd)(dddd)", &self->kind, &self->continuous,
+                          &self->cancel_Et, &self->plan,
                           &self->v_ref, &self->K, &self->alpha, &self->phi, &self->decay, &self->lK1, &self->lK2,
                           &self->bK1, &self->bK2, &self->bK3, &self->bPi, &self->u_min, &self->u_max, &self->r_max,
-                          &self->i_floor, &self->keC, &self->late_tol, &self->obs, &self->load_ref))
+                          &self->i_floor, &self->keC, &self->late_tol, &self->obs, &self->load_ref, &self->nK_P,
+                          &self->nK_E, &self->i_max, &self->n_decay, &self->kp_i, &self->ki_i, &self->kp_v, &self->ki_v))
         return NULL;
     Py_RETURN_NONE;
 }

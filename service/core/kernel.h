@@ -16,15 +16,15 @@
 #define PYMIN(a, b) ((b) < (a) ? (b) : (a))
 #define PYMAX(a, b) ((b) > (a) ? (b) : (a))
 
-enum { K_FIXED = 0, K_LQR = 1, K_BM = 2, K_FBLC = 3, K_SMC = 4 };
+enum { K_FIXED = 0, K_LQR = 1, K_BM = 2, K_FBLC = 3, K_SMC = 4, K_NESTED = 5, K_PI = 6 };
 
 /* Output buffer layout (doubles), shared with service/core/compiled.py. */
 enum {
     O_DU = 0, O_DU_RAW, O_UZ, O_YZ, O_YREF, O_E, O_LIMITED, O_IPRED, O_VPRED, O_UPRED, O_Z0, O_Z1,
     O_SEQ, O_T, O_STEPS, O_COUNT, O_HAS_EST,
     O_EST = 17, /* 18 RLCEnergy fields, in its __slots__ order */
-    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42, O_DU_NEXT = 43, O_LATE = 44,
-    O_N = 45
+    O_FITV = 35, O_FITS = 38, O_ZRUN0 = 41, O_ZRUN1 = 42, O_DU_NEXT = 43, O_LATE = 44, O_ILIM = 45,
+    O_N = 46
 };
 enum { E_E = 0, E_ET, E_D, E_TAU, E_P, E_PDOT, E_PU, E_QDU, E_PL, E_QDL, E_PM, E_YZ, E_YZB, E_ETA, E_PRO, E_QRO,
        E_PROP, E_QROP };
@@ -39,6 +39,11 @@ typedef struct {
     double v_ref, K, alpha, phi, decay, lK1, lK2, bK1, bK2, bK3, bPi, u_min, u_max, r_max, i_floor, keC, late_tol;
     double obs; /* observer_gain (0: the prediction starts from the raw sample) */
     int load_ref; /* load_power: 1 = -P_in (the neighbours' announced power), 0 = v i_2 measured */
+    double nK_P, nK_E, i_max, n_decay; /* nested: branch-power and terminal-energy rates (1/s), current limit (A; 0:
+                                          none), exp(-K_u T) */
+    double kp_i, ki_i, kp_v, ki_v; /* pi: the current loop's and the voltage loop's gains */
+    double pi_xv, pi_xi, pi_u; /* pi: the integrals of the voltage and current errors, the u it asks for (V) */
+    int ilim; /* the last law call met the current limit (nested) */
     /* the observer: seq of its last estimate, the estimate (i, v, u) and the load power (W) carried with it */
     double x_seq, x_hat[3], x_P;
     /* late-command detection: the last step's seq and measured u, and the verdict */

@@ -47,6 +47,13 @@ CASES = [
     ("fblc", "exact", 3, ['controller.load_power="reference"', "controller.observer_gain=0.15",
                           "timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5", "timing.command_late=0.1"]),
     ("bm", "exact", 2, ['controller.load_power="reference"']),
+    # the nested law (the default) and the cascaded PI baseline, with and without their current limits
+    ("nested", "exact", 3, []),
+    ("nested", "exact", 0, ["controller.observer_gain=0.15"]),
+    ("nested", "exact", 2, ["controller.limits.i_max_A=16.0", 'controller.load_power="reference"']),
+    ("nested", "exact", 3, ["timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5", "timing.command_loss=0.1"]),
+    ("pi", "exact", 3, []),
+    ("pi", "exact", 1, ["controller.limits.i_max_A=12.0", "controller.limits.u_max_V=95.0"]),
 ]
 
 
@@ -138,7 +145,7 @@ finite = st.floats(-1e4, 1e4, allow_nan=False)
 
 @settings(max_examples=150, deadline=None)
 @given(i=st.floats(-200, 200), v=st.floats(1.0, 400.0), u=st.floats(-400, 400), i2=finite, P=finite, Pd=finite,
-       dt=st.floats(1e-6, 1e-2), kind=st.sampled_from(["fblc", "smc", "lqr", "bm"]),
+       dt=st.floats(1e-6, 1e-2), kind=st.sampled_from(["fblc", "smc", "lqr", "bm", "nested", "pi"]),
        mapping=st.sampled_from(["exact", "continuous"]), d=st.integers(0, 3))
 def test_any_input_same_answer(i, v, u, i2, P, Pd, dt, kind, mapping, d):
     """Arbitrary (finite, physical-sign) inputs, including ones that drive the laws to their limits."""
@@ -158,6 +165,7 @@ def test_any_input_same_answer(i, v, u, i2, P, Pd, dt, kind, mapping, d):
             p, q = getattr(x, f), getattr(y, f)
             assert p == q or (math.isnan(p) and math.isnan(q)), f
         assert x.limited == y.limited
+        assert x.i_limited == y.i_limited
 
 
 @pytest.mark.parametrize("observer", [0.0, 0.2])
