@@ -192,15 +192,18 @@ class ControllerConfig(Strict):
         default=10000.0, description="nested: rate (1/s) at which its output sigma, the branch power's error and "
                                      "its rate, decays over each period (sigma(T) = sigma(0) exp(-K_u T))")
     nested_K_P_per_s: Pos = Field(
-        default=6000.0, description="nested: rate (1/s) at which the branch power P_b = v i converges to its "
+        default=8000.0, description="nested: rate (1/s) at which the branch power P_b = v i converges to its "
                                     "reference P_l - K_E (E_C - E_C,ref)")
     nested_K_E_per_s: Pos = Field(
         default=1500.0, description="nested: rate K_E (1/s) at which the terminal energy E_C = C v^2 / 2 converges "
                                     "to C v_ref^2 / 2")
-    pi_current_bw_per_s: Pos = Field(
-        default=2500.0, description="pi: current-loop bandwidth w_i (1/s, rad/s): Kp_i = L w_i, Ki_i = R w_i")
-    pi_voltage_bw_per_s: Pos = Field(
-        default=400.0, description="pi: voltage-loop bandwidth w_v (1/s, rad/s): Kp_v = C w_v, Ki_v = C w_v^2 / 4")
+    pi_current_bw_per_s: Pos | None = Field(
+        default=None, description="pi: current-loop bandwidth w_i (1/s, rad/s): Kp_i = L w_i, Ki_i = R w_i; None: "
+                                  "1.1 / ((d + 1.5) T) from the sample period T (s) and the loop delay d (samples), "
+                                  "at most 2 500 /s (2 444 /s at 10 kHz with 3 samples)")
+    pi_voltage_bw_per_s: Pos | None = Field(
+        default=None, description="pi: voltage-loop bandwidth w_v (1/s, rad/s): Kp_v = C w_v, Ki_v = C w_v^2 / 4; "
+                                  "None: w_i / 5")
     cancel_tangent_energy: bool = Field(
         default=True,
         description="True: u_z cancels eta - 4E_t so e decays at exactly K; False: paper's general form "

@@ -76,14 +76,17 @@ def _worker(job: tuple[str, list[str]]) -> dict:
     return run_one(*job)
 
 
-def parallel(jobs: list[tuple[str, list[str]]], n_jobs: int | None, progress: bool = False) -> list[dict]:
-    """run_one for each (path, overrides) job on n_jobs processes (default: all cores), results in job order."""
+def parallel(jobs: list[tuple[str, list[str]]], n_jobs: int | None, progress: bool = False, worker=None
+             ) -> list[dict]:
+    """worker (default: run_one on (path, overrides)) for each job on n_jobs processes (default: all cores), results
+    in job order. worker: a module-level function of one job."""
+    worker = worker or _worker
     n = n_jobs or os.cpu_count() or 1
     t0 = time.perf_counter()
     if n == 1 or len(jobs) == 1:
         out = []
         for k, j in enumerate(jobs, 1):
-            out.append(_worker(j))
+            out.append(worker(j))
             if progress:
                 _progress(k, len(jobs), t0)
         return out
@@ -91,7 +94,7 @@ def parallel(jobs: list[tuple[str, list[str]]], n_jobs: int | None, progress: bo
 
     with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(n) as pool:
         out = []
-        for k, m in enumerate(pool.imap(_worker, jobs, chunksize=2), 1):
+        for k, m in enumerate(pool.imap(worker, jobs, chunksize=2), 1):
             out.append(m)
             if progress:
                 _progress(k, len(jobs), t0)

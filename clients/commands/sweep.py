@@ -10,6 +10,7 @@ import sys
 import time
 
 from clients.commands.common import kinds, load, parallel
+from clients.envelope import CONTROLLERS as ENVELOPE_CONTROLLERS
 from clients.options import add_scenario_set
 from clients.table import metrics_table, render
 from schemas.scenario import ScenarioError, parse_override
@@ -35,18 +36,26 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "sweep", help="run a grid of scenario overrides on all cores",
         description="Cartesian grid of overrides on a base scenario, for each controller. "
                     "--preset robustness is the robustness grid: rates {5,10,20} kHz x delays "
-                    "{0..3} x i0 {0.5,1,15,30} A x load {0.3,1.2,2.4} kW x noise {0,0.05}.")
+                    "{0..3} x i0 {0.5,1,15,30} A x load {0.3,1.2,2.4} kW x noise {0,0.05}. --preset envelope: "
+                    "load steps between every pair of {-2.4,-1.2,-0.3,0,0.3,1.2,2.4} kW from the steady state "
+                    "(both directions of power, through zero) at 10 kHz (3 samples of delay) and 1 kHz (1 and 2), "
+                    "for every controller, with the nested law against the cascaded PI case by case, and on the "
+                    "two-source network and the ring: load rejection to 0, reversal to -1.2 kW, 2.4 kW -> 150 W, "
+                    "100 W steady over 8 seeds. Exit 1 when a run diverges or misses its criteria.")
     w.add_argument("scenario", nargs="*",
                    help="the base scenario the grid overrides (default: scenarios/paper-constant-load.toml); with "
                         "--preset network, the network scenarios (default: scenarios/network/{"
                         + ",".join(NETWORK_SCENARIOS) + "}.toml)")
-    w.add_argument("--preset", choices=["robustness", "network"],
+    w.add_argument("--preset", choices=["robustness", "network", "envelope"],
                    help="start from a named grid: robustness (one source: rates x delays x initial currents x "
-                        "loads x noise) or network (each network scenario: loop delay {0..3} x interaction delay "
-                        "{0, 1, 5 ms} x load x {0.5, 1, 2} x noise {0, 0.05})")
+                        "loads x noise), network (each network scenario: loop delay {0..3} x interaction delay "
+                        "{0, 1, 5 ms} x load x {0.5, 1, 2} x noise {0, 0.05}) or envelope (load steps over both "
+                        "directions of power, one source and networks; base scenario default "
+                        "scenarios/paper-varying-load.toml)")
     w.add_argument("--grid", action="append", metavar="key=v1,v2,...",
                    help="a grid axis; 'k1,k2=v1,v2' sets both keys to each value (repeatable)")
-    w.add_argument("--controllers", default="fblc", help="comma list (default: %(default)s)")
+    w.add_argument("--controllers", default=None,
+                   help="comma list (default: nested; with --preset envelope: " + ENVELOPE_CONTROLLERS + ")")
     add_scenario_set(w)
     w.add_argument("--jobs", type=int, default=None, help="processes (default: all cores)")
     w.add_argument("--rows", action="store_true", help="also print every run")
@@ -108,11 +117,13 @@ def write_runs(args: argparse.Namespace, wall: float, grid: dict, keys: list[str
 def run(args: argparse.Namespace) -> int:
     if args.preset == "network":
         return run_network_sweep(args)
+    if args.preset == "envelope":
+        return run_envelope(args)
     if len(args.scenario) > 1:
         raise ScenarioError("sweep: one base scenario (several only with --preset network)")
     args.scenario = args.scenario[0] if args.scenario else "scenarios/paper-constant-load.toml"
     grid = grid_from_args(args)
-    controllers = kinds(args.controllers)
+    controllers = kinds(args.controllers or "nested")
     keys = list(grid)
     combos = list(itertools.product(*(grid[k] for k in keys)))
     jobs, labels = [], []
@@ -189,3 +200,33 @@ def run_network_sweep(args: argparse.Namespace) -> int:
                                                                                               strict=True)]))
     return 0
 
+
+
+def run_envelope(args: argparse.Namespace) -> int:
+    """--preset envelope (clients/envelope.py): the single-source steps for each controller, the law against the PI
+    baseline per case, the network cases; exit 1 when any run fails its criteria."""
+    from clients import envelope
+
+    if args.grid:
+        raise ScenarioError("sweep --preset envelope: its grid is fixed (no --grid); --set changes the base scenario")
+    base = args.scenario[0] if args.scenario else "scenarios/paper-varying-load.toml"
+    if len(args.scenario) > 1:
+        raise ScenarioError("sweep --preset envelope: one base scenario")
+    controllers = kinds(args.controllers or ENVELOPE_CONTROLLERS)
+    nets = [f"scenarios/network/{n}.toml" for n in envelope.NET_SCENARIOS]
+    sj, sl, nj, nl = envelope.jobs(base, controllers, nets, list(args.set or []))
+    sys.stderr.write(f"sweep: envelope, {len(sj)} single-source runs ({len(controllers)} controllers) and "
+                     f"{len(nj)} network runs on {args.jobs or os.cpu_count()} processes\n")
+    t0 = time.perf_counter()
+    sr = parallel(sj, args.jobs, progress=not args.quiet, worker=envelope.single_worker)
+    nr = parallel(nj, args.jobs, progress=not args.quiet, worker=envelope.net_worker)
+    wall = time.perf_counter() - t0
+    text, ok = envelope.report(sl, sr, nl, nr, load(base, args.set or []).controller.v_ref_V)
+    if args.json:
+        print(envelope.as_json(sl, sr, nl, nr))
+    else:
+        print(text)
+        print(f"{len(sj) + len(nj)} runs in {wall:.1f} s")
+    if not ok:
+        sys.stderr.write("sweep: some runs diverged or missed their criteria (see the tables)\n")
+    return 0 if ok else 1
