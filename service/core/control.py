@@ -226,8 +226,8 @@ def core_metadata(controller: ControllerConfig, model: CircuitParams, period_s: 
 
 # the most each of the nested law's rates may be, per sample period: K_u T <= 2, K_P T <= 1, K_E T <= 0.3
 NESTED_RATE_PER_PERIOD = (2.0, 1.0, 0.3)
-NESTED_OBSERVER_GAIN = 0.15
-PI_MAX_CURRENT_BW = 2500.0  # pi: the derived current-loop bandwidth at most (1/s); 7 333 /s (10 kHz, no delay) rang  # nested: commands with a quarter of the noise, same regulation (docs/decisions/0030)
+NESTED_OBSERVER_GAIN = 0.15  # nested: commands with a quarter of the noise, same regulation (docs/decisions/0030)
+PI_MAX_CURRENT_BW = 2500.0  # pi: the derived current-loop bandwidth at most (1/s); 7 333 /s (10 kHz, no delay) rang
 
 
 def nested_rates(cfg: ControllerConfig, period_s: float) -> tuple[float, float, float]:
@@ -242,9 +242,9 @@ def nested_rates(cfg: ControllerConfig, period_s: float) -> tuple[float, float, 
 
 def pi_bandwidths(cfg: ControllerConfig, period_s: float, delay_samples: int) -> tuple[float, float]:
     """The cascaded PI's bandwidths in use (w_i, w_v, 1/s): the configured ones, or w_i = 1.1 / ((d + 1.5) T) (the
-    loop delay and half a period of hold, with 45-50 degrees of phase margin), at most 2 500 /s, and w_v = w_i / 5. Chosen on the
-    envelope of load steps: 2 500 /s held every step at 10 kHz with 3 samples of delay and 800 /s diverged at 1 kHz
-    with 2, where the rule's 314 /s holds."""
+    loop delay and half a period of hold, with 45-50 degrees of phase margin), at most 2 500 /s, and w_v = w_i / 5.
+    Chosen on the envelope of load steps: 2 500 /s held every step at 10 kHz with 3 samples of delay and 800 /s
+    diverged at 1 kHz with 2, where the rule's 314 /s holds."""
     wi = cfg.pi_current_bw_per_s or min(PI_MAX_CURRENT_BW, 1.1 / ((delay_samples + 1.5) * period_s))
     return wi, cfg.pi_voltage_bw_per_s or wi / 5.0
 
