@@ -55,7 +55,7 @@ def test_sweep_runs_a_grid_on_several_processes(capsys, tmp_path):
     assert main(["sweep", CONST, "--grid", "timing.delay_samples=0,3", "--grid", "load.value=300.0,2400.0",
                  "--set", "timing.duration_s=0.02", "--jobs", "2", "--quiet", "--csv", str(csv)]) == 0
     out = capsys.readouterr().out
-    assert "fblc" in out and "4 runs" in out
+    assert "nested" in out and "4 runs" in out  # the default law
     assert len(csv.read_text().splitlines()) == 5
 
 

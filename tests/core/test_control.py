@@ -317,7 +317,8 @@ def _late_burst_run(late_detect_V: float, observer_gain: float = 0.0) -> tuple[f
     from service.sim import substeps
 
     scn = load_scenario(Path(__file__).parents[2] / "clients" / "embedded" / "demo.toml",
-                        ["timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5", "controller.K_per_s=1500.0",
+                        ['controller.kind="fblc"', "timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5",
+                         "controller.K_per_s=1500.0",
                          "controller.limits.du_dt_max_V_per_s=20000.0", f"controller.late_detect_V={late_detect_V}",
                          f"controller.observer_gain={observer_gain}"])
     T, d = 1e-3, 2
@@ -360,8 +361,9 @@ def test_a_burst_of_late_commands_is_detected_from_the_measured_u():
 
 
 # ---------------------------------------------------------------- the observer for the delay prediction's start
-REALTIME_1KHZ = ["timing.control_rate_hz=1000.0", "timing.delay_samples=3", "controller.K_per_s=1500.0",
-                 "timing.plant_step_s=5e-5"]
+# the paper's law (the demo's until the nested law became the default), whose sampled-data machinery these show
+REALTIME_1KHZ = ['controller.kind="fblc"', "timing.control_rate_hz=1000.0", "timing.delay_samples=3",
+                 "controller.K_per_s=1500.0", "timing.plant_step_s=5e-5"]
 
 
 def _demo(extra: list[str]):
