@@ -80,10 +80,10 @@ def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
 
 
 def test_a_refused_plug_in_stays_open_and_says_why(tmp_path):
-    """S3 with K = 10 /s cannot follow its share: the coordinator refuses, the breaker stays open, the daemon says
+    """S3 with K_P = 10 /s cannot follow its share: the coordinator refuses, the breaker stays open, the daemon says
     why, and nothing moves (as offline)."""
     scen = shortened(tmp_path, SCENARIOS / "network" / "plug-in.toml", duration_s=0.08, step_s=0.02, events=[0.05])
-    sets = ["sources.S3.controller.K_per_s=10.0"]
+    sets = ["sources.S3.controller.nested_K_P_per_s=10.0"]
     off = run_network(load_network(scen, sets))
     assert [e.accepted for e in off.events if e.kind == "connect"] == [False]
     with LiveNetwork(scen, tmp_path / "run", sets=sets) as live:
