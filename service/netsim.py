@@ -46,6 +46,8 @@ STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back
 SOURCE_SIGNALS = ("i", "v", "u", "i_out", "P", "P_in", "du_dt", "mode", "v_ref",
                   "meas_i", "meas_v", "meas_u", "meas_i_load", "stepped", "cmd_du", "cmd_du_next")
 
+CARRY_MIN_W = 1.0  # a source carries load in the metrics from this |power| (W; and the idle power): a tripped one has 0
+
 
 @dataclass
 class Event:
@@ -237,7 +239,8 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
     names = list(net.sources)
     shares = {s: net.sources[s].share for s in names}
     steady_P = {s: float(np.mean(res.sources[s]["P"][tail])) if n else 0.0 for s in names}
-    carrying = [s for s in names if abs(steady_P[s]) >= net.layer.idle_power_W]
+    carry_W = max(net.layer.idle_power_W, CARRY_MIN_W)
+    carrying = [s for s in names if abs(steady_P[s]) >= carry_W]
     total_P = sum(steady_P[s] for s in carrying) or 1.0
     total_share = sum(shares[s] for s in carrying) or 1.0
     m: dict = {"diverged": diverged_at is not None, "diverged_at_s": diverged_at, "t_end": float(t[-1]) if n else 0.0,
@@ -290,12 +293,12 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
              "terminals_back_in_band_s": {
                  s: _back_in_band(t, res.sources[s]["v"], ev.t, t1, float(np.mean(res.sources[s]["v"][settled])),
                                   BAND_SETTLE) for s in names
-                 if settled.any() and abs(float(np.mean(res.sources[s]["P"][settled]))) >= net.layer.idle_power_W},
+                 if settled.any() and abs(float(np.mean(res.sources[s]["P"][settled]))) >= carry_W},
              "terminals_near_v_ref_s": {
                  s: _settle_time(t[window], terminal_dev[s][window], BAND_SETTLE, ev.t) for s in names}}
         if n and settled.any():
             after = t >= ev.t
-            on = [s for s in names if abs(float(np.mean(res.sources[s]["P"][settled]))) >= net.layer.idle_power_W]
+            on = [s for s in names if abs(float(np.mean(res.sources[s]["P"][settled]))) >= carry_W]
             if len(on) > 1:
                 tot = sum(P_s[s] for s in on)
                 w = sum(shares[s] for s in on)

@@ -26,8 +26,9 @@ def _run(name: str, *overrides: str):
 def paper_law(*sources: str) -> list[str]:
     """Overrides that put a network's sources on the paper's law (fblc) with the layer as it was built for it: a
     30 W idle threshold, one common v_ref, each source following its own lines' power in the prediction. The
-    hazards of the design notes are the paper law's; these tests show them on it, and the default law beside."""
-    return ["layer.idle_power_W=30.0", 'layer.v_ref_mode="common"',
+    hazards of the design notes are the paper law's; these tests show them on it, and the default law beside. (Late
+    allocations carried forward 2 ms along their rate.)"""
+    return ["layer.idle_power_W=30.0", 'layer.v_ref_mode="common"', "layer.extrapolate_s=0.002",
             *(f"sources.{s}.controller.{kv}" for s in sources for kv in ('kind="fblc"', 'load_power="measured"'))]
 
 
