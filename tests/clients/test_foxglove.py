@@ -360,15 +360,19 @@ def publish():  # the graph thread's part: a component comes and goes, the graph
 
 t = threading.Thread(target=publish, daemon=True)
 t.start()
+first = None
 for i in range(150):  # Foxglove clients opening and closing the Topic Graph panel meanwhile
     with ws_client.connect(f"ws://127.0.0.1:{bridge.port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5) as ws:
         ws.send('{"op": "subscribeConnectionGraph"}')
         ws.recv(timeout=5)
+        if first is None:  # the publishes counted from the first client's subscription on
+            first = bridge.graph_counts["graph_updates"]
         ws.send('{"op": "unsubscribeConnectionGraph"}')
+during = bridge.graph_counts["graph_updates"] - first
 done.set()
 t.join(5)
 bridge.close()
-print("clients", i + 1, "updates", bridge.graph_counts["graph_updates"])
+print("clients", i + 1, "updates", during)
 """
 
 
@@ -398,7 +402,8 @@ def test_clients_subscribing_to_the_graph_while_it_is_published_do_not_deadlock_
         pytest.fail("the bridge deadlocked: 150 graph subscriptions did not finish within 90 s")
     assert r.returncode == 0, r.stderr[-3000:]
     clients, updates = int(r.stdout.split()[1]), int(r.stdout.split()[3])
-    assert clients == 150 and updates > 150, r.stdout
+    # every client came and went, and the graph was published while they did (how often depends on the machine)
+    assert clients == 150 and updates > 0, r.stdout
     # the same run without the hold deadlocks (5 of 5 here within 20 s): a race, so only on request; if a release
     # of the SDK stops deadlocking here, GraphHold can go
     if os.environ.get("ENERGYCTL_TEST_SDK_DEADLOCK"):
