@@ -111,6 +111,9 @@ class LoadAtBus(ProfileConfig):
     def _resistor(self) -> LoadAtBus:
         if self.type == "resistive" and self.R_ohm is None:
             raise ValueError("a resistive load needs R_ohm")
+        if self.type == "resistive" and (self.ou is not None or self.off_at_s or self.on_at_s):
+            raise ValueError("a resistive load has no profile: ou, off_at_s and on_at_s go with type 'cpl' "
+                             "(active_from_s switches a resistor in)")
         return self
 
 

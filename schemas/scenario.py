@@ -63,32 +63,71 @@ class SineComponent(Strict):
     phase_rad: Finite = Field(default=0.0, description="phase at t = 0, rad")
 
 
+class OUConfig(Strict):
+    """A seeded Ornstein-Uhlenbeck term: mean-reverting noise with spread sigma and correlation time tau_s, drawn
+    from its seed on a fixed grid (the exact discretisation x[k+1] = a x[k] + sigma sqrt(1 - a^2) n[k],
+    a = exp(-grid_s / tau_s), x[0] = 0) and linear between grid points, so value and rate are exact and the same
+    in every process that reads the same table."""
+
+    sigma: NonNeg = Field(description="its stationary standard deviation, in the profile's unit (W for a load, V "
+                                      "for a disturbance)")
+    tau_s: Pos = Field(description="its correlation time, s")
+    seed: Annotated[int, Field(ge=0)] = Field(default=1, description="seed of its path (another seed, another path)")
+    grid_s: Annotated[float, Field(ge=1e-4, le=1.0)] = Field(
+        default=1e-3, description="the grid its path is drawn on, s; linear in between (the rate is the segment's "
+                                  "slope). Memory: 8 bytes a grid point up to the latest time asked for")
+
+
 class ProfileConfig(Strict):
     """A scalar time profile (W for loads, V for a matched disturbance).
 
     kind: ``constant`` (value), ``steps`` (value, then ``steps = [[t_s, value], ...]``),
-    ``sines`` (value + sum of ``components``), ``csv`` (piecewise-linear, columns t_s,value).
+    ``sines`` (value + sum of ``components``), ``combined`` (value, then the steps, plus the sines),
+    ``csv`` (piecewise-linear, columns t_s,value). Any kind may add a seeded Ornstein-Uhlenbeck term (``ou``) and
+    switch on and off (``off_at_s``, ``on_at_s``: 0 while off). A load may be negative: power fed into the bus (a
+    regenerative drive braking, a battery discharging into it).
     """
 
-    kind: Literal["constant", "steps", "sines", "csv"] = Field(
+    kind: Literal["constant", "steps", "sines", "combined", "csv"] = Field(
         default="constant", description="constant: value; steps: value, then each [t_s, value] of steps from its "
-                                        "time on; sines: value + the components; csv: piecewise-linear from csv_path")
+                                        "time on; sines: value + the components; combined: the steps plus the "
+                                        "components; csv: piecewise-linear from csv_path")
     value: Finite = Field(default=0.0, description="the constant, or the base of steps and sines, in the profile's "
                                                    "unit (W for a load, V for a disturbance)")
     steps: list[tuple[NonNeg, Finite]] = Field(
-        default=[], description="[[t_s, value], ...] sorted by time: from t_s (s) on, the profile is value (W or V)")
-    components: list[SineComponent] = Field(default=[], description="sines added to value")
+        default=[], description="[[t_s, value], ...] sorted by time: from t_s (s) on, the profile is value (W or V); "
+                                "kinds steps and combined")
+    components: list[SineComponent] = Field(default=[], description="sines added to value; kinds sines and "
+                                                                    "combined")
     csv_path: str | None = Field(default=None, description="csv file with columns t_s (s), value (W or V); a "
                                                           "relative path is taken from base_dir")
+    ou: OUConfig | None = Field(default=None, description="a seeded Ornstein-Uhlenbeck term added to the profile "
+                                                          "(any kind)")
+    off_at_s: list[NonNeg] = Field(
+        default=[], description="times it switches off, s, increasing: from each until the next on_at_s time the "
+                                "profile is 0 (W or V) and so is its rate")
+    on_at_s: list[NonNeg] = Field(
+        default=[], description="times it switches back on, s, increasing (off_at_s = [0.0] with on_at_s = [t]: "
+                                "switched in at t)")
 
     @model_validator(mode="after")
     def _consistent(self) -> ProfileConfig:
         if self.kind == "csv" and not self.csv_path:
             raise ValueError("kind 'csv' needs csv_path")
-        if self.kind == "steps":
-            ts = [t for t, _ in self.steps]
-            if ts != sorted(ts):
-                raise ValueError("steps must be sorted by time")
+        if self.steps and self.kind not in ("steps", "combined"):
+            raise ValueError(f"steps: kind {self.kind!r} has no steps (kind 'combined' adds steps and sines)")
+        if self.components and self.kind not in ("sines", "combined"):
+            raise ValueError(f"components: kind {self.kind!r} has no sines (kind 'combined' adds steps and sines)")
+        ts = [t for t, _ in self.steps]
+        if ts != sorted(ts):
+            raise ValueError("steps must be sorted by time")
+        for name in ("off_at_s", "on_at_s"):
+            ts = getattr(self, name)
+            if any(b <= a for a, b in zip(ts, ts[1:], strict=False)):
+                raise ValueError(f"{name} must be strictly increasing")
+        both = sorted(set(self.off_at_s) & set(self.on_at_s))
+        if both:
+            raise ValueError(f"off_at_s and on_at_s both name {', '.join(f'{t:g}' for t in both)} s")
         return self
 
 

@@ -142,9 +142,9 @@ class SwitchedProfile:
         return lo, hi, dlo, dhi
 
     def step_times(self) -> list[float]:
-        """When it jumps: its switching-in and its steps (s)."""
+        """When it jumps: its switching-in, its steps and its switching on and off (s)."""
         out = [self.from_s] if self.from_s > 0 else []
-        return out + [t for t in self.profile.times if t >= self.from_s] if self.profile.kind == "steps" else out
+        return out + [t for t in self.profile.event_times() if t >= self.from_s]
 
 
 class NetworkPlant:
