@@ -289,6 +289,28 @@ class FeasibilityConfig(Strict):
     forecast: OutgoingForecastConfig = OutgoingForecastConfig()
 
 
+class AcceptanceConfig(Strict):
+    """What a run must meet for ``energyctl sim``, ``compare`` and ``sweep`` to exit 0 (else 1, naming the run and
+    the criterion): it does not diverge, and its voltage stays inside the band where the band must hold."""
+
+    diverge_dev_pct: Annotated[float, Field(gt=0, le=100)] = Field(
+        default=25.0, description="the run diverges (and stops) when the terminal voltage is further than this from "
+                                  "v_ref, % of v_ref (a network: any node a source supplies, from nominal_v_V)")
+    band_pct: Annotated[float, Field(gt=0, le=100)] = Field(
+        default=2.0, description="the band: the terminal voltage within +-this of v_ref, % (a network: every bus "
+                                 "within +-this of nominal_v_V); settle_s and the events' back-in-band times use it "
+                                 "too")
+    hold_from_s: NonNeg | None = Field(
+        default=0.05, description="from this time on the voltage must stay inside the band, s; unset: the band is "
+                                  "not required (only divergence is checked)")
+    max_outside_band_s: NonNeg = Field(
+        default=0.0, description="how long in total the voltage may be outside the band where it must hold, s")
+    recover_s: NonNeg = Field(
+        default=0.0, description="after each event (a step or an on/off switch of the load or disturbance profile) "
+                                 "the band need not hold for this long, s; 0: a load step must be ridden through "
+                                 "inside the band")
+
+
 class Scenario(Strict):
     name: str = Field(default="scenario", description="name of the scenario (not empty)")
     description: str = Field(default="", description="free text")
@@ -301,6 +323,7 @@ class Scenario(Strict):
     timing: TimingConfig = TimingConfig()
     controller: ControllerConfig = ControllerConfig()
     feasibility: FeasibilityConfig = FeasibilityConfig()
+    acceptance: AcceptanceConfig = AcceptanceConfig()
     base_dir: str = Field(default=".", description="directory for relative csv paths (set by the loader)")
 
     @field_validator("name")
