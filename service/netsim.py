@@ -36,7 +36,7 @@ from service.core.interaction import outgoing_power_at
 from service.core.source import ACTIVE, FALLBACK, IDLE, MODES, SourceController
 from service.layer import InterconnectionLayer, link_of
 from service.netrig import NetworkRigModel
-from service.sim import band_must_hold, hold_metrics, verdict
+from service.sim import band_must_hold, hold_metrics, settle_time, verdict
 
 STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal
 # per source and tick: the true state (i, v, u, i_out), the power its lines draw as measured (P), the P^{r,in} it
@@ -204,7 +204,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
 def _back_in_band(t: np.ndarray, v: np.ndarray, t0: float, t1: float, target: float, band: float) -> float | None:
     """Seconds from t0 until v stays within +-band x target for the rest of [t0, t1) (None: not by t1)."""
     sel = (t >= t0) & (t < t1)
-    return _settle_time(t[sel], np.abs(v[sel] - target), band * abs(target), t0)
+    return settle_time(t[sel], np.abs(v[sel] - target), band * abs(target), t0)
 
 
 def _smooth(x: np.ndarray, n: int) -> np.ndarray:
@@ -302,7 +302,7 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
                                   band) for s in names
                  if settled.any() and abs(float(np.mean(res.sources[s]["P"][settled]))) >= net.layer.idle_power_W},
              "terminals_near_v_ref_s": {
-                 s: _settle_time(t[window], terminal_dev[s][window], band, ev.t) for s in names}}
+                 s: settle_time(t[window], terminal_dev[s][window], band, ev.t) for s in names}}
         if n and settled.any():
             after = t >= ev.t
             on = [s for s in names if abs(float(np.mean(res.sources[s]["P"][settled]))) >= net.layer.idle_power_W]
@@ -312,7 +312,7 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
                 err = np.max([np.abs(100.0 * (P_s[s] / np.where(tot == 0, 1.0, tot) - shares[s] / w)) for s in on],
                              axis=0)
                 sel = after & (t < t1)
-                e["sharing_in_band_s"] = _settle_time(t[sel], err[sel], SHARE_BAND_PP, ev.t)
+                e["sharing_in_band_s"] = settle_time(t[sel], err[sel], SHARE_BAND_PP, ev.t)
         if ev.kind in ("close", "connect") and ev.accepted:
             lines = [ev.target] if ev.target in net.lines else [
                 ln for ln, c in net.lines.items() if ev.target in (c.a, c.b)]
@@ -324,18 +324,6 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
         m["events"].append(e)
     m.update(verdict(m, acc))
     return m
-
-
-def _settle_time(t: np.ndarray, err: np.ndarray, bound: float, t0: float) -> float | None:
-    """Seconds from t0 until err stays at or below bound to the end of t (None: not by then)."""
-    if len(t) == 0:
-        return None
-    above = np.nonzero(err > bound)[0]
-    if len(above) == 0:
-        return 0.0
-    if above[-1] == len(t) - 1:
-        return None
-    return float(t[above[-1] + 1] - t0)
 
 
 # the offline issue's acceptance limits, checked by energyctl demo --network on the live run and on its logs

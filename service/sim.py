@@ -146,6 +146,19 @@ def outside_time(t: np.ndarray, outside: np.ndarray, keep: np.ndarray) -> float:
     return float(dt[outside & keep].sum())
 
 
+def settle_time(t: np.ndarray, err: np.ndarray, bound: float, t0: float = 0.0) -> float | None:
+    """Seconds from t0 until err stays at or below bound to the end of t (None: not by then): settle_s, a network's
+    back-in-band times, the report's and the recovery bench's."""
+    if len(t) == 0:
+        return None
+    above = np.nonzero(err > bound)[0]
+    if len(above) == 0:
+        return 0.0
+    if above[-1] == len(t) - 1:
+        return None
+    return float(t[above[-1] + 1] - t0)
+
+
 def band_must_hold(t: np.ndarray, acc: AcceptanceConfig, events: Iterable[float] = ()) -> np.ndarray:
     """The samples where the band must hold: from acc.hold_from_s on (HOLD_FROM_S when the band is not required,
     for the hold_* metrics), except acc.recover_s after each event time (s)."""
@@ -193,15 +206,7 @@ def compute_metrics(tr: dict[str, np.ndarray], v_ref: float, duration_s: float,
     t, v = tr["t"], tr["v"]
     band = acc.band_pct / 100
     dev = np.abs(v - v_ref)
-    outside = np.nonzero(dev > band * v_ref)[0]
-    if diverged or len(t) == 0:
-        settle = None
-    elif len(outside) == 0:
-        settle = 0.0
-    elif outside[-1] == len(t) - 1:
-        settle = None  # still outside at the end
-    else:
-        settle = float(t[outside[-1] + 1])
+    settle = None if diverged else settle_time(t, dev, band * v_ref)  # None: still outside at the end
     n = len(t)
     tail = slice(int(n * 0.9), n) if n else slice(0, 0)
     err = tr["y_z_true"] - tr["y_ref_true"]
