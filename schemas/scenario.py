@@ -41,6 +41,9 @@ class SourceLimits(Strict):
 
     u_min_V: Finite = Field(default=0.0, description="lowest source voltage the plant's source reaches, V")
     u_max_V: Finite = Field(default=200.0, description="highest source voltage the plant's source reaches, V")
+    i_max_A: Pos | None = Field(
+        default=None, description="the converter's current limit, A: |i| never exceeds it (while at it and pushed "
+                                  "further, di/dt = 0); unset: no limit")
 
     @model_validator(mode="after")
     def _order(self) -> SourceLimits:
@@ -55,6 +58,13 @@ class PlantConfig(CircuitParams):
     v_cpl_min_V: Pos = Field(
         default=5.0, description="below this terminal voltage (V) the CPL behaves as a constant resistance"
     )
+
+    @model_validator(mode="after")
+    def _within_limit(self) -> PlantConfig:
+        lim = self.source.i_max_A
+        if lim is not None and abs(self.initial.i_A) > lim:
+            raise ValueError(f"initial.i_A = {self.initial.i_A:g} A is beyond source.i_max_A = {lim:g} A")
+        return self
 
 
 class SineComponent(Strict):
