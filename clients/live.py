@@ -87,7 +87,8 @@ def configs_from_scenario(scn: Scenario, endpoint: str, lockstep: bool, rate_hz:
              "load": scn.load.model_dump(), "sensor": scn.sensor.model_dump(), "sample_rate_hz": rate,
              "plant_step_s": tm.plant_step_s, "delay_samples": tm.delay_samples if lockstep else 0,
              "pacing": "lockstep" if lockstep else "realtime", "duration_s": duration_s or tm.duration_s,
-             "seed": scn.seed, "v_ref_V": scn.controller.v_ref_V, "out": out, "base_dir": scn.base_dir,
+             "seed": scn.seed, "v_ref_V": scn.controller.v_ref_V, "acceptance": scn.acceptance.model_dump(),
+             "out": out, "base_dir": scn.base_dir,
              "realtime_apply_delay_samples": max(1, comp["delay_samples"])}
     if scn.disturbance is not None:
         plant["disturbance"] = scn.disturbance.model_dump()

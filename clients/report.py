@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from service.logio.reader import scan
+from service.sim import BAND_SETTLE, settle_time
 
 
 class ReportError(RuntimeError):
@@ -62,8 +63,7 @@ def summary_metrics(log: dict) -> dict:
     st, v_ref = state(log), log["v_ref"]
     t, v = st["t"], st["v"]
     dev = np.abs(v - v_ref)
-    out_idx = np.nonzero(dev > 0.02 * v_ref)[0]
-    settle = 0.0 if len(out_idx) == 0 else (None if out_idx[-1] == len(t) - 1 else float(t[out_idx[-1] + 1]))
+    settle = settle_time(t, dev, BAND_SETTLE * v_ref)
     cmd = log["series"].get("cmd", {}).get("du_dt", np.zeros(1))
     tail = slice(int(len(t) * 0.9), len(t))
     return {"settle_s": settle, "v_min": float(v.min()), "v_max": float(v.max()), "ss_error": float(dev[tail].mean()),

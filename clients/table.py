@@ -15,6 +15,7 @@ METRIC_COLUMNS = (
     ("rms_tracking_error", "rms y_z-y_ref W", lambda v: "-" if v is None else f"{v:.3g}"),
     ("feasibility_violations", "feas viol", str),
     ("diverged", "diverged", lambda v: "YES" if v else "no"),
+    ("accepted", "accepted", lambda v: "-" if v is None else ("yes" if v else "NO")),
 )
 
 

@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, BaseModel, Field, ValidationError, field_validator, model_validator
 
 from schemas.scenario import (
+    AcceptanceConfig,
     CircuitParams,
     ControllerConfig,
     LoadConfig,
@@ -298,6 +299,9 @@ class PlantPeerConfig(Named):
     seed: int = Field(default=1, description="seed of the sensor noise")
     v_ref_V: float = Field(default=80.0, description="the voltage reference the run's metrics are judged "
                                                      "against, V")
+    acceptance: AcceptanceConfig = Field(default=AcceptanceConfig(), description="the criteria the run's metrics "
+                                         "are judged by (a scenario's [acceptance]): divergence, the band and where "
+                                         "it must hold")
     out: str | None = Field(default=None, description="write the run's trace and metrics here (.mcap, .json)")
     base_dir: str = Field(default=".", description="directory for relative csv paths (set by the loader)")
 

@@ -22,6 +22,7 @@ from typing import Annotated, Literal
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from schemas.scenario import (
+    AcceptanceConfig,
     CircuitParams,
     CommandDisturbances,
     ControllerConfig,
@@ -128,6 +129,9 @@ class LoadAtBus(ProfileConfig):
     def _resistor(self) -> LoadAtBus:
         if self.type == "resistive" and self.R_ohm is None:
             raise ValueError("a resistive load needs R_ohm")
+        if self.type == "resistive" and (self.ou is not None or self.off_at_s or self.on_at_s):
+            raise ValueError("a resistive load has no profile: ou, off_at_s and on_at_s go with type 'cpl' "
+                             "(active_from_s switches a resistor in)")
         return self
 
 
@@ -205,6 +209,21 @@ class LayerConfig(Strict):
                                      "the open terminal's L-C resonance (57 Hz) up until it diverged; hold does not")
 
 
+class NetworkAcceptance(AcceptanceConfig):
+    """What a network run must meet for ``energyctl sim`` and ``sweep`` to exit 0 (else 1, naming the run and the
+    criterion): no node a source supplies leaves +-diverge_dev_pct of nominal_v_V, and every bus stays inside the
+    band where the band must hold (a bus no source reaches, a blackout, fails the band)."""
+
+    hold_from_s: NonNeg | None = Field(
+        default=0.2, description="from this time on every bus must stay inside the band, s (the layer restores the "
+                                 "buses over a few of its windows after the start); unset: the band is not required "
+                                 "(only divergence is checked)")
+    recover_s: NonNeg = Field(
+        default=0.2, description="after each event (a breaker, a connect request, a load's step or on/off switch) "
+                                 "the buses need not be inside the band for this long, s (the layer restores them "
+                                 "over a few of its windows)")
+
+
 class NetworkTiming(CommandDisturbances):
     """The network's timing; the command disturbances act on every source's commands, each its own seeded draw."""
 
@@ -238,6 +257,7 @@ class NetworkScenario(Strict):
         default=1.0, description="every load's power (and a resistive load's conductance) times this (a sweep's "
                                  "load axis)")
     layer: LayerConfig = LayerConfig()
+    acceptance: NetworkAcceptance = NetworkAcceptance()
     links: dict[str, LinkConfig] = Field(default={}, description="interaction-message delay and loss, by receiving "
                                                                  "source name, or '*' for all (a source's own entry "
                                                                  "sets its keys on top of '*')")

@@ -41,6 +41,9 @@ class SourceLimits(Strict):
 
     u_min_V: Finite = Field(default=0.0, description="lowest source voltage the plant's source reaches, V")
     u_max_V: Finite = Field(default=200.0, description="highest source voltage the plant's source reaches, V")
+    i_max_A: Pos | None = Field(
+        default=None, description="the converter's current limit, A: |i| never exceeds it (while at it and pushed "
+                                  "further, di/dt = 0); unset: no limit")
 
     @model_validator(mode="after")
     def _order(self) -> SourceLimits:
@@ -56,6 +59,13 @@ class PlantConfig(CircuitParams):
         default=5.0, description="below this terminal voltage (V) the CPL behaves as a constant resistance"
     )
 
+    @model_validator(mode="after")
+    def _within_limit(self) -> PlantConfig:
+        lim = self.source.i_max_A
+        if lim is not None and abs(self.initial.i_A) > lim:
+            raise ValueError(f"initial.i_A = {self.initial.i_A:g} A is beyond source.i_max_A = {lim:g} A")
+        return self
+
 
 class SineComponent(Strict):
     amplitude: Finite = Field(description="amplitude, in the profile's unit (W for a load, V for a disturbance)")
@@ -63,32 +73,71 @@ class SineComponent(Strict):
     phase_rad: Finite = Field(default=0.0, description="phase at t = 0, rad")
 
 
+class OUConfig(Strict):
+    """A seeded Ornstein-Uhlenbeck term: mean-reverting noise with spread sigma and correlation time tau_s, drawn
+    from its seed on a fixed grid (the exact discretisation x[k+1] = a x[k] + sigma sqrt(1 - a^2) n[k],
+    a = exp(-grid_s / tau_s), x[0] = 0) and linear between grid points, so value and rate are exact and the same
+    in every process that reads the same table."""
+
+    sigma: NonNeg = Field(description="its stationary standard deviation, in the profile's unit (W for a load, V "
+                                      "for a disturbance)")
+    tau_s: Pos = Field(description="its correlation time, s")
+    seed: Annotated[int, Field(ge=0)] = Field(default=1, description="seed of its path (another seed, another path)")
+    grid_s: Annotated[float, Field(ge=1e-4, le=1.0)] = Field(
+        default=1e-3, description="the grid its path is drawn on, s; linear in between (the rate is the segment's "
+                                  "slope). Memory: 8 bytes a grid point up to the latest time asked for")
+
+
 class ProfileConfig(Strict):
     """A scalar time profile (W for loads, V for a matched disturbance).
 
     kind: ``constant`` (value), ``steps`` (value, then ``steps = [[t_s, value], ...]``),
-    ``sines`` (value + sum of ``components``), ``csv`` (piecewise-linear, columns t_s,value).
+    ``sines`` (value + sum of ``components``), ``combined`` (value, then the steps, plus the sines),
+    ``csv`` (piecewise-linear, columns t_s,value). Any kind may add a seeded Ornstein-Uhlenbeck term (``ou``) and
+    switch on and off (``off_at_s``, ``on_at_s``: 0 while off). A load may be negative: power fed into the bus (a
+    regenerative drive braking, a battery discharging into it).
     """
 
-    kind: Literal["constant", "steps", "sines", "csv"] = Field(
+    kind: Literal["constant", "steps", "sines", "combined", "csv"] = Field(
         default="constant", description="constant: value; steps: value, then each [t_s, value] of steps from its "
-                                        "time on; sines: value + the components; csv: piecewise-linear from csv_path")
+                                        "time on; sines: value + the components; combined: the steps plus the "
+                                        "components; csv: piecewise-linear from csv_path")
     value: Finite = Field(default=0.0, description="the constant, or the base of steps and sines, in the profile's "
                                                    "unit (W for a load, V for a disturbance)")
     steps: list[tuple[NonNeg, Finite]] = Field(
-        default=[], description="[[t_s, value], ...] sorted by time: from t_s (s) on, the profile is value (W or V)")
-    components: list[SineComponent] = Field(default=[], description="sines added to value")
+        default=[], description="[[t_s, value], ...] sorted by time: from t_s (s) on, the profile is value (W or V); "
+                                "kinds steps and combined")
+    components: list[SineComponent] = Field(default=[], description="sines added to value; kinds sines and "
+                                                                    "combined")
     csv_path: str | None = Field(default=None, description="csv file with columns t_s (s), value (W or V); a "
                                                           "relative path is taken from base_dir")
+    ou: OUConfig | None = Field(default=None, description="a seeded Ornstein-Uhlenbeck term added to the profile "
+                                                          "(any kind)")
+    off_at_s: list[NonNeg] = Field(
+        default=[], description="times it switches off, s, increasing: from each until the next on_at_s time the "
+                                "profile is 0 (W or V) and so is its rate")
+    on_at_s: list[NonNeg] = Field(
+        default=[], description="times it switches back on, s, increasing (off_at_s = [0.0] with on_at_s = [t]: "
+                                "switched in at t)")
 
     @model_validator(mode="after")
     def _consistent(self) -> ProfileConfig:
         if self.kind == "csv" and not self.csv_path:
             raise ValueError("kind 'csv' needs csv_path")
-        if self.kind == "steps":
-            ts = [t for t, _ in self.steps]
-            if ts != sorted(ts):
-                raise ValueError("steps must be sorted by time")
+        if self.steps and self.kind not in ("steps", "combined"):
+            raise ValueError(f"steps: kind {self.kind!r} has no steps (kind 'combined' adds steps and sines)")
+        if self.components and self.kind not in ("sines", "combined"):
+            raise ValueError(f"components: kind {self.kind!r} has no sines (kind 'combined' adds steps and sines)")
+        ts = [t for t, _ in self.steps]
+        if ts != sorted(ts):
+            raise ValueError("steps must be sorted by time")
+        for name in ("off_at_s", "on_at_s"):
+            ts = getattr(self, name)
+            if any(b <= a for a, b in zip(ts, ts[1:], strict=False)):
+                raise ValueError(f"{name} must be strictly increasing")
+        both = sorted(set(self.off_at_s) & set(self.on_at_s))
+        if both:
+            raise ValueError(f"off_at_s and on_at_s both name {', '.join(f'{t:g}' for t in both)} s")
         return self
 
 
@@ -273,6 +322,28 @@ class FeasibilityConfig(Strict):
     forecast: OutgoingForecastConfig = OutgoingForecastConfig()
 
 
+class AcceptanceConfig(Strict):
+    """What a run must meet for ``energyctl sim``, ``compare`` and ``sweep`` to exit 0 (else 1, naming the run and
+    the criterion): it does not diverge, and its voltage stays inside the band where the band must hold."""
+
+    diverge_dev_pct: Annotated[float, Field(gt=0, le=100)] = Field(
+        default=25.0, description="the run diverges (and stops) when the terminal voltage is further than this from "
+                                  "v_ref, % of v_ref (a network: any node a source supplies, from nominal_v_V)")
+    band_pct: Annotated[float, Field(gt=0, le=100)] = Field(
+        default=2.0, description="the band: the terminal voltage within +-this of v_ref, % (a network: every bus "
+                                 "within +-this of nominal_v_V); settle_s and the events' back-in-band times use it "
+                                 "too")
+    hold_from_s: NonNeg | None = Field(
+        default=0.05, description="from this time on the voltage must stay inside the band, s; unset: the band is "
+                                  "not required (only divergence is checked)")
+    max_outside_band_s: NonNeg = Field(
+        default=0.0, description="how long in total the voltage may be outside the band where it must hold, s")
+    recover_s: NonNeg = Field(
+        default=0.0, description="after each event (a step or an on/off switch of the load or disturbance profile) "
+                                 "the band need not hold for this long, s; 0: a load step must be ridden through "
+                                 "inside the band")
+
+
 class Scenario(Strict):
     name: str = Field(default="scenario", description="name of the scenario (not empty)")
     description: str = Field(default="", description="free text")
@@ -285,6 +356,7 @@ class Scenario(Strict):
     timing: TimingConfig = TimingConfig()
     controller: ControllerConfig = ControllerConfig()
     feasibility: FeasibilityConfig = FeasibilityConfig()
+    acceptance: AcceptanceConfig = AcceptanceConfig()
     base_dir: str = Field(default=".", description="directory for relative csv paths (set by the loader)")
 
     @field_validator("name")

@@ -19,7 +19,7 @@ from schemas.network import EventConfig, NetworkScenario
 from service.core.types import Sample
 from service.plant.network import NetworkPlant
 from service.plant.rlc import CommandChannel, CommandSchedule, Sensor
-from service.sim import substeps
+from service.sim import divergence_why, substeps
 
 
 class NetworkRigModel:
@@ -48,6 +48,8 @@ class NetworkRigModel:
         self.pending: list[EventConfig] = sorted(net.events, key=lambda e: e.t_s)
         self.bus_idx = [plant.node_index[b] for b in net.buses]
         self.unsupplied: dict[str, float] = {}  # bus -> first plant time no source reached it (diverged)
+        self.nodes = net.nodes()
+        self.why = ""  # why diverged() said so
         self.bus_rng = np.random.default_rng([net.seed, 0xB05])  # the layer's bus measurements: their own noise
         self.r = [0.0] * ns
         # both ends of every line: (line, node, line index, node index), found once (line_ends runs per sample)
@@ -128,14 +130,23 @@ class NetworkRigModel:
         self.plant.advance(self.r, self.T, self.n_sub)
 
     def diverged(self) -> bool:
-        """A state not finite, or a node that a source supplies (NetworkPlant.supplied) outside 0.5-2x nominal.
-        Each bus no source reaches is noted in ``unsupplied`` (bus -> the first plant time, s) instead: a
-        blackout, which the buses' band checks report, not a controller's divergence."""
+        """A state not finite, or a node that a source supplies (NetworkPlant.supplied) further than the scenario's
+        acceptance.diverge_dev_pct from nominal; ``why`` then says which, in words. Each bus no source reaches is
+        noted in ``unsupplied`` (bus -> the first plant time, s) instead: a blackout, which the buses' band checks
+        report, not a controller's divergence."""
         v_nom = self.net.nominal_v_V
+        dev_max = self.net.acceptance.diverge_dev_pct / 100 * v_nom
         p = self.plant
         sup = p.supplied()
         if not all(sup):
             for name, k in zip(self.net.buses, self.bus_idx, strict=True):
                 if not sup[k] and name not in self.unsupplied:
                     self.unsupplied[name] = p.t
-        return not p.finite() or any(sup[k] and not (0.5 * v_nom < v < 2.0 * v_nom) for k, v in enumerate(p.v_n))
+        if not p.finite():
+            self.why = "the state is not finite"
+            return True
+        for k, v in enumerate(p.v_n):
+            if sup[k] and not abs(v - v_nom) <= dev_max:
+                self.why = divergence_why(v, 0.0, v_nom, self.net.acceptance, f"node {self.nodes[k]}")
+                return True
+        return False

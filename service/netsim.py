@@ -36,7 +36,7 @@ from service.core.interaction import outgoing_power_at
 from service.core.source import ACTIVE, FALLBACK, IDLE, MODES, SourceController
 from service.layer import InterconnectionLayer, link_of
 from service.netrig import NetworkRigModel
-from service.sim import BAND_SETTLE
+from service.sim import band_must_hold, hold_metrics, settle_time, verdict
 
 STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal
 # per source and tick: the true state (i, v, u, i_out), the power its lines draw as measured (P), the P^{r,in} it
@@ -185,7 +185,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         if win_k is not None and layer.active:
             set_ranges(win_k)
         rig.advance()
-        if rig.diverged():
+        if diverged_at is None and rig.diverged():
             diverged_at = plant.t
             if stop_on_divergence:
                 break
@@ -199,14 +199,14 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         if prof is not None:
             res.events += [Event(ts, "load", plant.load_names[j]) for ts in prof.step_times() if ts < tm.duration_s]
     res.events.sort(key=lambda e: e.t)
-    res.metrics = network_metrics(res, diverged_at, ctls, rig.unsupplied)
+    res.metrics = network_metrics(res, diverged_at, ctls, rig.unsupplied, rig.why if diverged_at is not None else None)
     return res
 
 
 def _back_in_band(t: np.ndarray, v: np.ndarray, t0: float, t1: float, target: float, band: float) -> float | None:
     """Seconds from t0 until v stays within +-band x target for the rest of [t0, t1) (None: not by t1)."""
     sel = (t >= t0) & (t < t1)
-    return _settle_time(t[sel], np.abs(v[sel] - target), band * abs(target), t0)
+    return settle_time(t[sel], np.abs(v[sel] - target), band * abs(target), t0)
 
 
 def _smooth(x: np.ndarray, n: int) -> np.ndarray:
@@ -222,16 +222,23 @@ SHARE_BAND_PP = 2.0  # sharing counts as reached within this many percentage poi
 SHARE_SMOOTH_S = 0.005  # over powers averaged over this long (s)
 
 
-def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsupplied: dict | None = None) -> dict:
-    """Per source and for the network: bands, sharing, recovery after each event, inrush, feasibility.
+def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsupplied: dict | None = None,
+                    diverged_why: str | None = None) -> dict:
+    """Per source and for the network: bands, sharing, recovery after each event, inrush, feasibility, and the
+    acceptance verdict (service.sim.verdict on the scenario's acceptance criteria).
 
-    After each event (a breaker, a connect request, a load step): the time until every bus is back within +-2 % of
-    nominal; until each terminal is back within +-2 % of where it settles (its mean over the last 50 ms before the
-    next event: a terminal moves to share the load, the buses are held at nominal, not the terminals), and until it
-    is within +-2 % of its own v_ref; until the sharing stays within SHARE_BAND_PP of the configured shares; and at
-    a close its line's inrush (peak |i| in 50 ms) and how far each bus moved. unsupplied: bus -> the first time no
-    source reached it (NetworkRigModel.diverged), reported as ``unsupplied_s``."""
+    The band is the scenario's acceptance.band_pct (+-2 % by default). After each event (a breaker, a connect
+    request, a load step or switch): the time until every bus is back within the band around nominal; until each
+    terminal is back within the band around where it settles (its mean over the last 50 ms before the next event:
+    a terminal moves to share the load, the buses are held at nominal, not the terminals), and until it is within
+    the band around its own v_ref; until the sharing stays within SHARE_BAND_PP of the configured shares; and at a
+    close its line's inrush (peak |i| in 50 ms) and how far each bus moved. hold_*: the buses where the band must
+    hold (from acceptance.hold_from_s on, except acceptance.recover_s after each event), the worst bus at each
+    sample. unsupplied: bus -> the first time no source reached it (NetworkRigModel.diverged), reported as
+    ``unsupplied_s``; diverged_why: what diverged (NetworkRigModel.why)."""
     net, t = res.net, res.t
+    acc = net.acceptance
+    band = acc.band_pct / 100
     v_nom = net.nominal_v_V
     n = len(t)
     T = 1.0 / net.timing.control_rate_hz
@@ -243,8 +250,11 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
     carrying = [s for s in names if abs(steady_P[s]) >= carry_W]
     total_P = sum(steady_P[s] for s in carrying) or 1.0
     total_share = sum(shares[s] for s in carrying) or 1.0
-    m: dict = {"diverged": diverged_at is not None, "diverged_at_s": diverged_at, "t_end": float(t[-1]) if n else 0.0,
-               "unsupplied_s": dict(unsupplied or {}), "sources": {}, "buses": {}, "events": []}
+    m: dict = {"diverged": diverged_at is not None, "diverged_at_s": diverged_at, "diverged_why": diverged_why,
+               "t_end": float(t[-1]) if n else 0.0, "unsupplied_s": dict(unsupplied or {}),
+               **hold_metrics(t, np.array([np.abs(v - v_nom) / v_nom for v in res.buses.values()]).reshape(-1, n),
+                              band_must_hold(t, acc, [e.t for e in res.events]), band, list(res.buses)),
+               "sources": {}, "buses": {}, "events": []}
     for s in names:
         row = res.sources[s]
         v = row["v"]
@@ -285,17 +295,17 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
         settled = (t >= t1 - 0.05) & (t < t1)
         window = (t >= ev.t) & (t < t1)
         e = {"t_s": ev.t, "kind": ev.kind, "target": ev.target, "accepted": ev.accepted, "reason": ev.reason,
-             "bus_back_in_band_s": {b: _back_in_band(t, v, ev.t, t1, v_nom, BAND_SETTLE)
+             "bus_back_in_band_s": {b: _back_in_band(t, v, ev.t, t1, v_nom, band)
                                     for b, v in res.buses.items()},
              "bus_min_V": {b: float(v[window].min()) if window.any() else None for b, v in res.buses.items()},
              # the terminals of the sources that carry load when things settle (an idle one waiting to connect
              # follows the buses, window by window)
              "terminals_back_in_band_s": {
                  s: _back_in_band(t, res.sources[s]["v"], ev.t, t1, float(np.mean(res.sources[s]["v"][settled])),
-                                  BAND_SETTLE) for s in names
+                                  band) for s in names
                  if settled.any() and abs(float(np.mean(res.sources[s]["P"][settled]))) >= carry_W},
              "terminals_near_v_ref_s": {
-                 s: _settle_time(t[window], terminal_dev[s][window], BAND_SETTLE, ev.t) for s in names}}
+                 s: settle_time(t[window], terminal_dev[s][window], band, ev.t) for s in names}}
         if n and settled.any():
             after = t >= ev.t
             on = [s for s in names if abs(float(np.mean(res.sources[s]["P"][settled]))) >= carry_W]
@@ -305,7 +315,7 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
                 err = np.max([np.abs(100.0 * (P_s[s] / np.where(tot == 0, 1.0, tot) - shares[s] / w)) for s in on],
                              axis=0)
                 sel = after & (t < t1)
-                e["sharing_in_band_s"] = _settle_time(t[sel], err[sel], SHARE_BAND_PP, ev.t)
+                e["sharing_in_band_s"] = settle_time(t[sel], err[sel], SHARE_BAND_PP, ev.t)
         if ev.kind in ("close", "connect") and ev.accepted:
             lines = [ev.target] if ev.target in net.lines else [
                 ln for ln, c in net.lines.items() if ev.target in (c.a, c.b)]
@@ -315,19 +325,8 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
             e["bus_move_V"] = {b: float(np.max(np.abs(v[after] - np.mean(v[near])))) if after.any() and near.any()
                                else None for b, v in res.buses.items()}
         m["events"].append(e)
+    m.update(verdict(m, acc))
     return m
-
-
-def _settle_time(t: np.ndarray, err: np.ndarray, bound: float, t0: float) -> float | None:
-    """Seconds from t0 until err stays at or below bound to the end of t (None: not by then)."""
-    if len(t) == 0:
-        return None
-    above = np.nonzero(err > bound)[0]
-    if len(above) == 0:
-        return 0.0
-    if above[-1] == len(t) - 1:
-        return None
-    return float(t[above[-1] + 1] - t0)
 
 
 # the offline issue's acceptance limits, checked by energyctl demo --network on the live run and on its logs

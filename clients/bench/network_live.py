@@ -17,7 +17,8 @@ import numpy as np
 
 from clients.netlive import LiveNetwork
 from clients.peers.netrig import read_rig_log
-from service.netsim import BAND_SETTLE, _back_in_band, acceptance_checks
+from service.netsim import _back_in_band, acceptance_checks
+from service.sim import BAND_SETTLE
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "clients" / "embedded" / "network-demo.toml"

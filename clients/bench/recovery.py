@@ -23,7 +23,7 @@ from schemas.component import ZenohConfig, merge_tables
 from schemas.scenario import Scenario
 from service.daemon.bus import free_tcp_port
 from service.logio.reader import messages as read_messages
-from service.sim import BAND_SETTLE
+from service.sim import BAND_SETTLE, settle_time
 
 
 class Rig:
@@ -140,11 +140,7 @@ class Rig:
 def recovery_after(t: np.ndarray, v: np.ndarray, t_back: float, v_ref: float) -> float | None:
     """Seconds from t_back until v is within +-2 % of v_ref to the end of the trace (None: not by the end)."""
     after = t >= t_back
-    ta, va = t[after], v[after]
-    outside = np.nonzero(np.abs(va - v_ref) > BAND_SETTLE * v_ref)[0]
-    if len(ta) == 0 or (len(outside) and outside[-1] == len(ta) - 1):
-        return None
-    return 0.0 if len(outside) == 0 else float(ta[outside[-1] + 1] - t_back)
+    return settle_time(t[after], np.abs(v[after] - v_ref), BAND_SETTLE * v_ref, t_back)
 
 
 def max_dev_pct(t: np.ndarray, v: np.ndarray, t0: float, t1: float, v_ref: float) -> float | None:

@@ -69,7 +69,21 @@ def network_summary(m: dict) -> dict:
             "worst_bus_ss_dev_pct": max((b["ss_dev_pct"] for b in m["buses"].values()
                                          if b["ss_dev_pct"] is not None), default=None),
             "worst_bus_back_s": None if None in backs else max(backs, default=0.0),
-            "fallback_s": sum(s["fallback_s"] or 0.0 for s in m["sources"].values())}
+            "fallback_s": sum(s["fallback_s"] or 0.0 for s in m["sources"].values()),
+            "accepted": m["accepted"], "failures": m["failures"]}
+
+
+ACCEPTANCE_HELP = ("Exit status: 0 when every run meets its scenario's [acceptance] criteria, 1 when one diverges "
+                   "(a node further than acceptance.diverge_dev_pct, 25 %, from v_ref; a network: from nominal) or "
+                   "leaves the band (acceptance.band_pct, +-2 %) where it must hold (from acceptance.hold_from_s on, "
+                   "0.05 s, a network's buses 0.2 s, except acceptance.recover_s after each event) for longer than "
+                   "acceptance.max_outside_band_s (0 s): each such run is named with its criterion, in the text and "
+                   "as accepted/failures in --json; 2 for a bad scenario or option.")
+
+
+def failure_lines(label: str, m: dict) -> list[str]:
+    """One line per acceptance criterion the run labelled ``label`` failed (service.sim.verdict)."""
+    return [f"FAILED {label}: {f['criterion']}: {f['detail']}" for f in m.get("failures") or []]
 
 
 def _worker(job: tuple[str, list[str]]) -> dict:

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from clients.commands.common import kinds, load, parallel
+from clients.commands.common import ACCEPTANCE_HELP, failure_lines, kinds, load, parallel
 from clients.options import add_scenario_set
 from clients.table import metrics_table
 
@@ -16,7 +16,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "compare", help="run scenarios under several controllers, one table",
         description="Runs every scenario under every controller in --controllers offline (as energyctl sim does, "
                     "in parallel processes) and prints one metrics table, a row per scenario and controller "
-                    "(--json: a JSON list, one object per row). The metrics are those of energyctl sim --help.")
+                    "(--json: a JSON list, one object per row). The metrics are those of energyctl sim --help. "
+                    "A baseline that leaves the band where the scenario requires it makes the comparison exit 1: "
+                    "the table is complete, and the failed rows are named under it. " + ACCEPTANCE_HELP)
     c.add_argument("scenarios", nargs="+", metavar="SCENARIO", help="scenario TOML files (see scenarios/)")
     c.add_argument("--controllers", default="fblc,smc,lqr,bm", help="comma list (default: %(default)s)")
     add_scenario_set(c)
@@ -38,4 +40,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps([{"scenario": r[0][0], "controller": r[0][1], **r[1]} for r in rows]))
     else:
         print(metrics_table(rows, ["scenario", "controller"]))
-    return 0
+        for labels, m in rows:
+            for line in failure_lines(" ".join(labels), m):
+                print(line)
+    return 0 if all(m["accepted"] for _, m in rows) else 1

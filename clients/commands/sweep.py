@@ -9,7 +9,7 @@ import os
 import sys
 import time
 
-from clients.commands.common import kinds, load, parallel
+from clients.commands.common import ACCEPTANCE_HELP, failure_lines, kinds, load, parallel
 from clients.envelope import CONTROLLERS as ENVELOPE_CONTROLLERS
 from clients.options import add_scenario_set
 from clients.table import metrics_table, render
@@ -41,7 +41,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "(both directions of power, through zero) at 10 kHz (3 samples of delay) and 1 kHz (1 and 2), "
                     "for every controller, with the nested law against the cascaded PI case by case, and on the "
                     "two-source network and the ring: load rejection to 0, reversal to -1.2 kW, 2.4 kW -> 150 W, "
-                    "100 W steady over 8 seeds. Exit 1 when a run diverges or misses its criteria.")
+                    "100 W steady over 8 seeds. Exit 1 when a run diverges or misses its criteria. "
+                    "The summary counts "
+                    "per controller (or network) the runs that failed their acceptance criteria and names the "
+                    f"first {SHOW_FAILED} of them under it (--json and --csv carry accepted and failures for every "
+                    "run). " + ACCEPTANCE_HELP)
     w.add_argument("scenario", nargs="*",
                    help="the base scenario the grid overrides (default: scenarios/paper-constant-load.toml); with "
                         "--preset network, the network scenarios (default: scenarios/network/{"
@@ -67,6 +71,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return w
 
 
+SHOW_FAILED = 20  # failed runs named under the summary
+
+
 def grid_from_args(args: argparse.Namespace) -> dict[str, list]:
     presets = {"robustness": ROBUSTNESS_GRID, "network": NETWORK_GRID}
     grid: dict[str, list] = dict(presets.get(args.preset, {}))
@@ -84,7 +91,7 @@ def summary_row(kind: str, ms: list[dict]) -> list[str]:
     """One controller's line of the summary table."""
     settles = [m["settle_s"] for m in ms if m["settle_s"] is not None]
     holds = [m["hold_max_dev_pct"] for m in ms if m["hold_max_dev_pct"] is not None and not m["diverged"]]
-    return [kind, str(len(ms)), str(sum(m["diverged"] for m in ms)),
+    return [kind, str(len(ms)), str(sum(not m["accepted"] for m in ms)), str(sum(m["diverged"] for m in ms)),
             str(sum(m["settle_s"] is None for m in ms)),
             f"{max(settles) * 1e3:.1f}" if settles else "-",
             f"{sorted(settles)[len(settles) // 2] * 1e3:.1f}" if settles else "-",
@@ -99,7 +106,28 @@ def write_csv(path: str, keys: list[str], labels: list, results: list[dict], lab
         w = csv.writer(f)
         w.writerow([label, *(k.replace(",", "+") for k in keys), *results[0].keys()])
         for (kind, combo), m in zip(labels, results, strict=True):
-            w.writerow([kind, *combo, *("" if v is None else v for v in m.values())])
+            w.writerow([kind, *combo, *(_cell(v) for v in m.values())])
+
+
+def _cell(v) -> object:
+    """A metric as a CSV cell: none empty, a list of failures as 'criterion: detail; ...'."""
+    if v is None:
+        return ""
+    if isinstance(v, list):
+        return "; ".join(f"{f['criterion']}: {f['detail']}" if isinstance(f, dict) else str(f) for f in v)
+    return v
+
+
+def report_failed(keys: list[str], labels: list, results: list[dict]) -> int:
+    """Names the runs that failed their acceptance criteria (the first SHOW_FAILED), with their grid values;
+    the exit status: 1 if any failed, else 0."""
+    failed = [(k, c, m) for (k, c), m in zip(labels, results, strict=True) if not m["accepted"]]
+    for k, c, m in failed[:SHOW_FAILED]:
+        for line in failure_lines(" ".join([k, *(f"{key}={v}" for key, v in zip(keys, c, strict=True))]), m):
+            print(line)
+    if len(failed) > SHOW_FAILED:
+        print(f"... and {len(failed) - SHOW_FAILED} more failed runs (--json or --csv lists every run)")
+    return 1 if failed else 0
 
 
 def write_runs(args: argparse.Namespace, wall: float, grid: dict, keys: list[str], labels: list, results: list[dict],
@@ -144,14 +172,14 @@ def run(args: argparse.Namespace) -> int:
     rows = [summary_row(kind, [m for (k, _), m in zip(labels, results, strict=True) if k == kind])
             for kind in controllers]
     if write_runs(args, wall, grid, keys, labels, results, "controller"):
-        return 0
-    print(render(["controller", "runs", "diverged", "not settled", "worst settle ms", "median settle ms",
+        return 1 if not all(m["accepted"] for m in results) else 0
+    print(render(["controller", "runs", "failed", "diverged", "not settled", "worst settle ms", "median settle ms",
                   "worst hold %", "runs w/ feas viol"], rows))
     print(f"{len(jobs)} runs in {wall:.1f} s")
     if args.rows:
         print(metrics_table([([k, *map(str, c)], m) for (k, c), m in zip(labels, results, strict=True)],
                             ["controller", *keys]))
-    return 0
+    return report_failed(keys, labels, results)
 
 
 def run_network_sweep(args: argparse.Namespace) -> int:
@@ -180,25 +208,25 @@ def run_network_sweep(args: argparse.Namespace) -> int:
     results = parallel(jobs, args.jobs, progress=not args.quiet)
     wall = time.perf_counter() - t0
     if write_runs(args, wall, grid, keys, labels, results, "network"):
-        return 0
+        return 1 if not all(m["accepted"] for m in results) else 0
     rows = []
     for path in paths:
         ms = [m for (n, _), m in zip(labels, results, strict=True) if n == Path(path).stem]
         ok = [m for m in ms if not m["diverged"]]
         backs = [m["worst_bus_back_s"] for m in ok]
-        rows.append([Path(path).stem, str(len(ms)), str(len(ms) - len(ok)),
+        rows.append([Path(path).stem, str(len(ms)), str(sum(not m["accepted"] for m in ms)), str(len(ms) - len(ok)),
                      f"{max((m['worst_sharing_pp'] or 0.0 for m in ok), default=0.0):.2f}",
                      f"{min((m['bus_min_V'] for m in ok), default=float('nan')):.2f}",
                      "never" if None in backs else f"{max(backs, default=0.0) * 1e3:.0f}",
                      str(sum(m["fallback_s"] > 0 for m in ok))])
-    print(render(["network", "runs", "diverged", "worst sharing pp", "lowest bus V", "slowest bus back ms",
-                  "runs w/ fallback"], rows))
+    print(render(["network", "runs", "failed", "diverged", "worst sharing pp", "lowest bus V",
+                  "slowest bus back ms", "runs w/ fallback"], rows))
     print(f"{len(jobs)} runs in {wall:.1f} s")
     if args.rows:
         print(render(["network", *keys, *results[0].keys()],
-                     [[n, *map(str, c), *(str(v) for v in m.values())] for (n, c), m in zip(labels, results,
-                                                                                              strict=True)]))
-    return 0
+                     [[n, *map(str, c), *(str(_cell(v)) for v in m.values())] for (n, c), m in zip(labels, results,
+                                                                                                   strict=True)]))
+    return report_failed(keys, labels, results)
 
 
 

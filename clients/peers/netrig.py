@@ -314,7 +314,8 @@ class NetworkRig:
     def result(self) -> dict:
         res = self.trace()
         add_load_events(res)
-        res.metrics = network_metrics(res, self.diverged_at, None, self.model.unsupplied)
+        res.metrics = network_metrics(res, self.diverged_at, None, self.model.unsupplied,
+                                      self.model.why if self.diverged_at is not None else None)
         n = len(res.t)
         checks = acceptance_checks(res)
         self.counters["missed"] = sum(max(0, n - 1 - self.answered[s]) for s in self.names

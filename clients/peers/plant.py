@@ -22,7 +22,7 @@ from schemas.component import PlantPeerConfig
 from service.daemon.bus import key, open_session, publisher, queued
 from service.plant.profiles import Profile
 from service.plant.rlc import CommandSchedule, RLCPlant, Sensor, load_current
-from service.sim import compute_metrics, substeps
+from service.sim import compute_metrics, profile_events, substeps, trace_divergence
 
 PLANT_TRACE = ("t", "i", "v", "u", "i_load", "P_l", "i_meas", "v_meas", "u_meas", "i_load_meas", "du_dt",
                "du_dt_applied", "y_z_true", "y_ref_true")
@@ -305,9 +305,9 @@ class PlantRig:
         cfg, counters, sched, lat_ns, rec = self.cfg, self.counters, self.sched, self.lat_ns, self.rec
         cols = np.frombuffer(self.rows, dtype=np.float64).reshape(-1, len(PLANT_TRACE)).T
         trace = {f: cols[j].copy() for j, f in enumerate(PLANT_TRACE)}
-        diverged = bool(len(trace["v"]) and not (0.5 * cfg.v_ref_V < trace["v"].min()
-                                                  and trace["v"].max() < 2 * cfg.v_ref_V))
-        metrics = compute_metrics(trace, cfg.v_ref_V, cfg.duration_s, diverged, 0)
+        diverged = trace_divergence(trace["t"], trace["v"], cfg.v_ref_V, cfg.acceptance)
+        metrics = compute_metrics(trace, cfg.v_ref_V, cfg.duration_s, diverged, 0, cfg.acceptance,
+                                  profile_events(self.load, self.plant.dist))
         in_run = max(0, counters["samples"] - sched.d)  # samples whose command's period is within the run
         counters["missed"] = in_run - sum(self.arrived[:in_run])
         counters.update(sched.counts)

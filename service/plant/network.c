@@ -4,7 +4,7 @@
  * operation for operation (the same results to the bit; tests/plant/test_network.py). The arrays are writable
  * buffers of doubles (array('d')); i_s, u_s, i_l and v_n are updated in place. */
 
-enum { SRC_W = 4, LINE_W = 5, LOAD_W = 5, MAX_ELEMS = 4096 };
+enum { SRC_W = 5, LINE_W = 5, LOAD_W = 5, MAX_ELEMS = 4096 };
 
 typedef struct {
     const double *src, *r, *lines, *node_C, *loads;
@@ -20,7 +20,11 @@ static void derivatives(const Net *w, double kf, const double *u, const double *
         inj[n] = 0.0;
     for (Py_ssize_t j = 0; j < w->ns; j++) {
         const double *o = w->src + SRC_W * j;
-        ds[j] = (u[j] - o[0] * xs[j] - xv[j]) / o[1];
+        double d = (u[j] - o[0] * xs[j] - xv[j]) / o[1];
+        const double im = o[4];
+        if (im != INFINITY && ((xs[j] >= im && d > 0.0) || (xs[j] <= -im && d < 0.0)))
+            d = 0.0; /* at its current limit, pushed further */
+        ds[j] = d;
         inj[j] += xs[j];
     }
     for (Py_ssize_t j = 0; j < w->nl; j++) {
@@ -144,8 +148,12 @@ PyObject *network_steps(PyObject *Py_UNUSED(mod), PyObject *const *args, Py_ssiz
                 const double *dns = stage == 2 ? k3s : (stage == 0 ? k1s : k2s);
                 const double *dnl = stage == 2 ? k3l : (stage == 0 ? k1l : k2l);
                 const double *dnv = stage == 2 ? k3v : (stage == 0 ? k1v : k2v);
-                for (Py_ssize_t j = 0; j < ns; j++)
+                for (Py_ssize_t j = 0; j < ns; j++) {
                     ts[j] = i_s[j] + step * dns[j];
+                    const double im = w.src[SRC_W * j + 4];
+                    if (im != INFINITY)
+                        ts[j] = PYMIN(PYMAX(ts[j], -im), im);
+                }
                 for (Py_ssize_t j = 0; j < nl; j++)
                     tl[j] = i_l[j] + step * dnl[j];
                 for (Py_ssize_t j = 0; j < nn; j++)
@@ -155,6 +163,9 @@ PyObject *network_steps(PyObject *Py_UNUSED(mod), PyObject *const *args, Py_ssiz
         const double h6 = h / 6.0;
         for (Py_ssize_t j = 0; j < ns; j++) {
             i_s[j] += h6 * (k1s[j] + 2.0 * k2s[j] + 2.0 * k3s[j] + k4s[j]);
+            const double im = w.src[SRC_W * j + 4];
+            if (im != INFINITY)
+                i_s[j] = PYMIN(PYMAX(i_s[j], -im), im);
             u_s[j] = PYMIN(PYMAX(u_s[j] + w.r[j] * h, w.src[SRC_W * j + 2]), w.src[SRC_W * j + 3]);
         }
         for (Py_ssize_t j = 0; j < nl; j++)

@@ -2,7 +2,8 @@
 
 State (SI units):
 
-    i_s  source-branch currents (A), one per source: L_s di_s/dt = u_s - R_s i_s - v_s
+    i_s  source-branch currents (A), one per source: L_s di_s/dt = u_s - R_s i_s - v_s; with a current limit
+         (limits.i_max_A) held within +-i_max as the one-source plant holds it (``rlc`` module docstring)
     u_s  source voltages (V): du_s/dt = r_s, the commanded rate, held over a control period; u_s stays in
          [u_min, u_max] (evaluated as clip(u + r tau) at each stage, as the one-source plant does)
     i_l  line currents (A), positive from the line's a end to its b end: L_l di_l/dt = v_a - v_b - R_l i_l;
@@ -27,8 +28,8 @@ from service.plant.profiles import Profile
 from service.plant.rlc import pick_twin
 
 CPL, RESISTIVE = 0.0, 1.0
-SRC_W, LINE_W, LOAD_W = 4, 5, 5  # doubles per row: source R, L, u_min, u_max; line R, L, a, b, closed;
-# load node, kind, P at the period's start (W) or G (S), dP per substep (W), v_min (V)
+SRC_W, LINE_W, LOAD_W = 5, 5, 5  # doubles per row: source R, L, u_min, u_max, i_max (A, inf: none);
+# line R, L, a, b, closed; load node, kind, P at the period's start (W) or G (S), dP per substep (W), v_min (V)
 
 
 def steps(h: float, n_sub: int, src: array, r: array, lines: array, node_C: array, loads: array, i_s: array,
@@ -67,6 +68,9 @@ def steps(h: float, n_sub: int, src: array, r: array, lines: array, node_C: arra
                 dnv = k3v if stage == 2 else (k1v if stage == 0 else k2v)
                 for j in range(ns):
                     ts[j] = i_s[j] + step * dns[j]
+                    im = src[SRC_W * j + 4]
+                    if im != math.inf:
+                        ts[j] = min(max(ts[j], -im), im)
                 for j in range(nl):
                     tl[j] = i_l[j] + step * dnl[j]
                 for j in range(nn):
@@ -74,6 +78,9 @@ def steps(h: float, n_sub: int, src: array, r: array, lines: array, node_C: arra
         h6 = h / 6.0
         for j in range(ns):
             i_s[j] += h6 * (k1s[j] + 2.0 * k2s[j] + 2.0 * k3s[j] + k4s[j])
+            im = src[SRC_W * j + 4]
+            if im != math.inf:
+                i_s[j] = min(max(i_s[j], -im), im)
             u_s[j] = min(max(u_s[j] + r[j] * h, src[SRC_W * j + 2]), src[SRC_W * j + 3])
         for j in range(nl):
             if lines[LINE_W * j + 4] != 0.0:
@@ -89,7 +96,11 @@ def _derivatives(kf: float, src, lines, node_C, loads, u, xs, xl, xv, ds, dl, dv
         inj[n] = 0.0
     for j in range(ns):
         o = SRC_W * j
-        ds[j] = (u[j] - src[o] * xs[j] - xv[j]) / src[o + 1]
+        d = (u[j] - src[o] * xs[j] - xv[j]) / src[o + 1]
+        im = src[o + 4]
+        if im != math.inf and (xs[j] >= im and d > 0.0 or xs[j] <= -im and d < 0.0):
+            d = 0.0  # at its current limit, pushed further
+        ds[j] = d
         inj[j] += xs[j]
     for j in range(nl):
         o = LINE_W * j
@@ -142,9 +153,9 @@ class SwitchedProfile:
         return lo, hi, dlo, dhi
 
     def step_times(self) -> list[float]:
-        """When it jumps: its switching-in and its steps (s)."""
+        """When it jumps: its switching-in, its steps and its switching on and off (s)."""
         out = [self.from_s] if self.from_s > 0 else []
-        return out + [t for t in self.profile.times if t >= self.from_s] if self.profile.kind == "steps" else out
+        return out + [t for t in self.profile.event_times() if t >= self.from_s]
 
 
 class NetworkPlant:
@@ -160,7 +171,8 @@ class NetworkPlant:
         self.src = array("d")
         self.i_s, self.u_s = array("d"), array("d")
         for s in net.sources.values():
-            self.src.extend((s.R_ohm, s.L_H, s.limits.u_min_V, s.limits.u_max_V))
+            self.src.extend((s.R_ohm, s.L_H, s.limits.u_min_V, s.limits.u_max_V,
+                             s.limits.i_max_A if s.limits.i_max_A is not None else math.inf))
             self.i_s.append(0.0)
             self.u_s.append(min(max(s.v0_V or v0, s.limits.u_min_V), s.limits.u_max_V))
         self.node_C = array("d", [s.C_F for s in net.sources.values()] + [b.C_F for b in net.buses.values()])
@@ -237,7 +249,8 @@ class NetworkPlant:
             a, b = int(self.lines[o + 2]), int(self.lines[o + 3])
             self.i_l[j] = float((v[a] - v[b]) / max(self.lines[o], 1e-6)) if self.closed(j) else 0.0
         for j in range(ns):
-            self.i_s[j] = float(inj[j]) if j in on else 0.0
+            im = self.src[SRC_W * j + 4]
+            self.i_s[j] = min(max(float(inj[j]), -im), im) if j in on else 0.0  # within its current limit
             u = self.v_n[j] + self.src[SRC_W * j] * self.i_s[j]
             self.u_s[j] = min(max(u, self.src[SRC_W * j + 2]), self.src[SRC_W * j + 3])
 

@@ -7,6 +7,11 @@ trajectory for the same commands. No clocks, no I/O.
     C dv/dt = i - i_2,   i_2 = P_l / v    (constant-power load; below v_cpl_min it is a resistor)
     du/dt   = r                           (commanded voltage rate, V/s, held over a control period;
                                            u stays inside the source's [u_min, u_max])
+
+With a current limit i_max (plant.source.i_max_A) the converter drives no more than |i| = i_max: while |i| is at the
+limit and the branch voltage u + u_m - R i - v would push it further, di/dt = 0 (the converter's current loop
+takes over from its voltage command; u stays the commanded voltage), and every RK4 stage's current and each step's
+result are held inside [-i_max, i_max]. docs/control.md (the plant) says why this model.
 """
 
 from __future__ import annotations
@@ -30,13 +35,14 @@ def load_current(P_W: float, v_V: float, v_min_V: float) -> float:
 class RLCPlant:
     """Fixed-step RK4 integration of the circuit; state t (s), i (A), v (V), u (V)."""
 
-    __slots__ = ("R", "L", "C", "u_min", "u_max", "v_min", "load", "dist", "t", "i", "v", "u", "_steps")
+    __slots__ = ("R", "L", "C", "u_min", "u_max", "i_max", "v_min", "load", "dist", "t", "i", "v", "u", "_steps")
 
     def __init__(self, cfg: PlantConfig, load: Profile, disturbance: Profile | None = None, impl: str = "auto"):
         """impl: the integrator, "c" (compiled, bit-identical), "python" (rk4_steps) or "auto" (c if built)."""
         self._steps = integrator(impl)
         self.R, self.L, self.C = cfg.R_ohm, cfg.L_H, cfg.C_F
         self.u_min, self.u_max = cfg.source.u_min_V, cfg.source.u_max_V
+        self.i_max = cfg.source.i_max_A if cfg.source.i_max_A is not None else math.inf  # inf: no limit
         self.v_min = cfg.v_cpl_min_V
         self.load, self.dist = load, disturbance
         ini = cfg.initial
@@ -69,18 +75,20 @@ class RLCPlant:
         u_end = u + r * T
         clip = not (umin <= u <= umax and umin <= u_end <= umax)
         self.i, self.v, self.u = self._steps(R, L, C, vmin, umin, umax, float(clip), r, h, float(n_sub), Pa, dP, ma,
-                                             dm, i, v, u)
+                                             dm, i, v, u, self.i_max)
         self.t = t + T
 
 
 def rk4_steps(R: float, L: float, C: float, vmin: float, umin: float, umax: float, clip: float, r: float, h: float,
               n_sub: float, Pa: float, dP: float, ma: float, dm: float, i: float, v: float,
-              u: float) -> tuple[float, float, float]:
+              u: float, imax: float = math.inf) -> tuple[float, float, float]:
     """RLCPlant.advance's integration: n_sub RK4 steps of h seconds from (i, v, u) at source rate r (V/s), load
-    power Pa + k dP at substep k (W), disturbance ma + k dm (V); u clipped to [umin, umax] when clip. The
-    compiled twin (service/plant/rk4.c plant_steps) does the same operations in the same order."""
+    power Pa + k dP at substep k (W), disturbance ma + k dm (V); u clipped to [umin, umax] when clip; the source
+    current held within [-imax, imax] (A; inf: no limit) as the module docstring says. The compiled twin
+    (service/plant/rk4.c plant_steps) does the same operations in the same order."""
     hh = 0.5 * h
     vmin2 = vmin * vmin
+    lim = imax != math.inf
     for k in range(int(n_sub)):
         P0 = Pa + k * dP
         P1 = P0 + dP
@@ -98,26 +106,42 @@ def rk4_steps(R: float, L: float, C: float, vmin: float, umin: float, umax: floa
         # k1
         i2 = P0 / v if v >= vmin else P0 * v / vmin2
         ki1 = (u + m0 - R * i - v) / L
+        if lim and (i >= imax and ki1 > 0.0 or i <= -imax and ki1 < 0.0):
+            ki1 = 0.0
         kv1 = (i - i2) / C
         # k2
         ii = i + hh * ki1
+        if lim:
+            ii = min(max(ii, -imax), imax)
         vv = v + hh * kv1
         i2 = Pm / vv if vv >= vmin else Pm * vv / vmin2
         ki2 = (um_ + mm - R * ii - vv) / L
+        if lim and (ii >= imax and ki2 > 0.0 or ii <= -imax and ki2 < 0.0):
+            ki2 = 0.0
         kv2 = (ii - i2) / C
         # k3
         ii = i + hh * ki2
+        if lim:
+            ii = min(max(ii, -imax), imax)
         vv = v + hh * kv2
         i2 = Pm / vv if vv >= vmin else Pm * vv / vmin2
         ki3 = (um_ + mm - R * ii - vv) / L
+        if lim and (ii >= imax and ki3 > 0.0 or ii <= -imax and ki3 < 0.0):
+            ki3 = 0.0
         kv3 = (ii - i2) / C
         # k4
         ii = i + h * ki3
+        if lim:
+            ii = min(max(ii, -imax), imax)
         vv = v + h * kv3
         i2 = P1 / vv if vv >= vmin else P1 * vv / vmin2
         ki4 = (ub + m1 - R * ii - vv) / L
+        if lim and (ii >= imax and ki4 > 0.0 or ii <= -imax and ki4 < 0.0):
+            ki4 = 0.0
         kv4 = (ii - i2) / C
         i += h / 6.0 * (ki1 + 2.0 * ki2 + 2.0 * ki3 + ki4)
+        if lim:
+            i = min(max(i, -imax), imax)
         v += h / 6.0 * (kv1 + 2.0 * kv2 + 2.0 * kv3 + kv4)
         u = ub
     return i, v, u

@@ -511,6 +511,35 @@ def test_the_metrics_say_when_v_deviated_most_and_how_long_it_was_outside_the_ba
     assert m["hold_max_dev_pct"] == pytest.approx(3.0)
     assert m["hold_max_dev_t_s"] == pytest.approx(0.30, abs=dt)
     assert m["hold_outside_band_s"] == pytest.approx(0.010, abs=1.5 * dt)
+    assert not m["accepted"] and m["failures"][0]["criterion"] == "band"
+
+
+def test_the_band_is_judged_where_the_scenario_says_it_must_hold():
+    """The same 10 ms excursion at 0.30 s: accepted when the scenario allows 15 ms outside the band, or gives 20 ms
+    of recovery after an event at 0.295 s (not after one at 0.25 s), or a band of +-4 %, or does not require the
+    band; failed again with the band required from 0.35 s but the excursion moved to 0.40 s."""
+    from schemas.scenario import AcceptanceConfig
+    from service.sim import compute_metrics
+
+    v_ref, dt = 80.0, 1e-4
+    t = np.arange(0.0, 0.5, dt)
+
+    def judged(at: float, events=(), **acc) -> dict:
+        v = np.full_like(t, v_ref)
+        v[(t >= at - 1e-9) & (t < at + 0.01 - 1e-9)] = v_ref * 1.03
+        tr = {"t": t, "v": v, "y_z_true": np.zeros_like(t), "y_ref_true": np.zeros_like(t),
+              "du_dt_applied": np.zeros_like(t)}
+        return compute_metrics(tr, v_ref, 0.5, False, 0, AcceptanceConfig(**acc), events)
+
+    assert not judged(0.30)["accepted"]
+    assert judged(0.30, max_outside_band_s=0.015)["accepted"]
+    assert judged(0.30, [0.295], recover_s=0.02)["accepted"]
+    assert not judged(0.30, [0.25], recover_s=0.02)["accepted"]
+    assert judged(0.30, band_pct=4.0)["accepted"]
+    assert judged(0.30, hold_from_s=None)["accepted"]
+    assert judged(0.30, hold_from_s=0.35)["accepted"] and not judged(0.40, hold_from_s=0.35)["accepted"]
+    failed = judged(0.40, [0.1], recover_s=0.02)["failures"][0]["detail"]
+    assert "10.0 ms from 0.05 s on, except 20 ms after each event" in failed and "3.00 % at t = 0.4000 s" in failed
 
 
 def test_a_hold_with_a_rate_is_what_the_delay_prediction_integrates():

@@ -209,14 +209,15 @@ def test_skipped_and_held_samples_same_answer(plan, delay, observer):
 @settings(max_examples=300, deadline=None)
 @given(i=st.floats(-200, 200), v=st.floats(-50.0, 400.0), u=st.floats(-50, 400), r=st.floats(-1e6, 1e6),
        Pa=st.floats(-5e3, 5e3), dP=st.floats(-50, 50), ma=st.floats(-5, 5), dm=st.floats(-0.1, 0.1),
-       n_sub=st.integers(1, 25), h=st.floats(1e-7, 1e-4), clip=st.booleans())
-def test_compiled_plant_integrator_equals_python(i, v, u, r, Pa, dP, ma, dm, n_sub, h, clip):
+       n_sub=st.integers(1, 25), h=st.floats(1e-7, 1e-4), clip=st.booleans(),
+       imax=st.one_of(st.just(math.inf), st.floats(0.5, 250.0)))
+def test_compiled_plant_integrator_equals_python(i, v, u, r, Pa, dP, ma, dm, n_sub, h, clip, imax):
     """The plant's RK4 loop in C (sim and the HIL plant use it when built) is the Python loop bit for bit,
-    through the resistive region below v_min and the u clip."""
+    through the resistive region below v_min, the u clip and the source's current limit (held there or not)."""
     from service import _kernel
     from service.plant.rlc import rk4_steps
 
-    args = (0.01, 1.12e-3, 6.8e-3, 40.0, 0.0, 200.0, float(clip), r, h, float(n_sub), Pa, dP, ma, dm, i, v, u)
+    args = (0.01, 1.12e-3, 6.8e-3, 40.0, 0.0, 200.0, float(clip), r, h, float(n_sub), Pa, dP, ma, dm, i, v, u, imax)
     try:
         want = rk4_steps(*args)
     except ZeroDivisionError:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import pytest
 
 from schemas.scenario import PlantConfig, ProfileConfig, SensorConfig
@@ -109,3 +111,68 @@ def test_the_schedule_never_applies_anything_but_the_command_its_plan_or_a_hold(
         assert c["late"] == sum(1 for f in fate[:n - d - 1] if f == "late")
 
     check()
+
+
+def _ramped(impl: str, i_max: float | None, r: float, periods: int = 300) -> list[tuple[float, float, float]]:
+    """The plant from its 1.2 kW operating point with u ramped at r V/s: (i, v, u) after each 0.1 ms period."""
+    plant = RLCPlant(PlantConfig(initial={"i_A": 15.0, "v_V": 80.0, "u_V": 80.15},
+                                 source={"i_max_A": i_max} if i_max is not None else {}),
+                     Profile(ProfileConfig(value=1200.0)), impl=impl)
+    out = []
+    for _ in range(periods):
+        plant.advance(r, 1e-4, 10)
+        out.append((plant.i, plant.v, plant.u))
+    return out
+
+
+@pytest.mark.parametrize("r", [2e4, -2e4])
+def test_the_source_current_stays_within_its_limit_where_it_would_exceed_it(r):
+    """Ramping u up (down) drives i far past +20 A (-20 A) unlimited; with i_max_A = 20 it stops at the limit and
+    stays there while the branch pushes further, u goes on as commanded, and the capacitor gets i_max: v follows
+    C dv/dt = i_max - P / v."""
+    free = _ramped("python", None, r)
+    held = _ramped("python", 20.0, r)
+    assert max(abs(i) for i, _, _ in free) > 40.0
+    assert max(abs(i) for i, _, _ in held) <= 20.0
+    at_limit = [k for k, (i, _, _) in enumerate(held) if abs(i) == 20.0]
+    assert len(at_limit) > 50 and at_limit == list(range(at_limit[0], at_limit[-1] + 1))  # held, not chattering
+    assert [x[2] for x in held] == [x[2] for x in free]  # u is the converter's command either way
+    k = at_limit[5]
+    i, v, _ = held[k]
+    dv_dt = (held[k + 1][1] - held[k - 1][1]) / 2e-4
+    assert dv_dt == pytest.approx((i - 1200.0 / v) / 6.8e-3, rel=1e-3)
+
+
+def test_a_source_current_limit_the_run_never_reaches_changes_nothing():
+    assert _ramped("python", 1e3, 2e4) == _ramped("python", None, 2e4)
+
+
+@pytest.mark.skipif(not importlib.util.find_spec("service._kernel"), reason="compiled kernel not built")
+@pytest.mark.parametrize("r", [2e4, -2e4])
+def test_the_compiled_plant_holds_the_current_limit_to_the_same_bits(r):
+    assert _ramped("c", 20.0, r) == _ramped("python", 20.0, r)
+
+
+def test_an_initial_current_beyond_the_limit_is_refused_with_the_fields_named():
+    from schemas.scenario import ScenarioError, scenario_from_dict
+
+    with pytest.raises(ScenarioError, match=r"plant: .*initial.i_A = 30 A is beyond source.i_max_A = 20 A"):
+        scenario_from_dict({"plant": {"initial": {"i_A": 30.0}, "source": {"i_max_A": 20.0}}})
+
+
+def test_a_source_limited_below_what_a_load_step_needs_holds_its_current_and_loses_the_bus():
+    """paper-feasibility's step to 1.8 kW needs 22.5 A: with i_max_A = 23.5 the run is the unlimited one (its peak is
+    23.0 A); with 20 A the source sits at its limit and v collapses, which the run reports as a divergence."""
+    import numpy as np
+    from conftest import SCENARIOS
+
+    from schemas.scenario import load_scenario
+    from service.sim import run
+
+    def sim(*ov):
+        return run(load_scenario(SCENARIOS / "paper-feasibility.toml", ["timing.duration_s=0.6", *ov]))
+
+    free, roomy, tight = sim(), sim("plant.source.i_max_A=23.5"), sim("plant.source.i_max_A=20.0")
+    assert np.abs(free.trace["i"]).max() > 22.5 and np.array_equal(roomy.trace["i"], free.trace["i"])
+    assert np.abs(tight.trace["i"]).max() == 20.0 and np.sum(tight.trace["i"] == 20.0) > 100
+    assert tight.metrics["failures"][0]["criterion"] == "divergence" and tight.metrics["diverged_at_s"] > 0.35
