@@ -196,9 +196,13 @@ class Daemon(DaemonQueries):
 
         ring = self.recorder.ring_args(0) if self.recorder is not None else {}
         c = self.cfg
+        ranges = MEAS.half_open_ranges()  # accept admits what decode admits: seq in [0, 2^53), t in [0, 2^32)
+        if set(ranges) != {"seq", "t"} or ranges["seq"][0] != 0:
+            raise ValueError(f"TickWriter.accept checks seq < a limit and t in a range; the codec checks {ranges}")
+        seq, t = ranges["seq"], ranges["t"]
         return TickWriter(k, self._hist_seq, self._hist_u, self._hist_r, CMD.struct.format, CMD.magic, VERSION,
                           **ring, meas_format=MEAS.struct.format, meas_magic=MEAS.magic, v_min=c.meas_v_min_V,
-                          v_max=c.meas_v_max_V, i_max=c.meas_i_max_A)
+                          v_max=c.meas_v_max_V, i_max=c.meas_i_max_A, seq_limit=seq[1], t_min=t[0], t_limit=t[1])
 
     def close(self) -> None:
         self.state = "shutdown"

@@ -45,6 +45,11 @@ def test_good_samples_step_the_core(daemon):
     (MEAS.struct.pack(0xE1, 1, 5, 5e-4, math.nan, 80.0, 80.0, 15.0), "meas.i: invalid"),
     (MEAS.struct.pack(0xE1, 1, 5, 5e-4, 15.0, math.inf, 80.0, 15.0), "meas.v: invalid"),
     (MEAS.struct.pack(0xE1, 1, 5, 5e-4, 15.0, 80.0, -math.inf, 15.0), "meas.u: invalid"),
+    (MEAS.struct.pack(0xE1, 1, 2**63, 5e-4, 15.0, 80.0, 80.15, 15.0), "meas.seq: invalid"),  # issue 30's frame
+    (MEAS.struct.pack(0xE1, 1, 2**64 - 1, 5e-4, 15.0, 80.0, 80.15, 15.0), "meas.seq: invalid"),
+    (MEAS.struct.pack(0xE1, 1, 2**53, 5e-4, 15.0, 80.0, 80.15, 15.0), "meas.seq: invalid"),  # not exact as a double
+    (meas(5, t=-5e-4), "meas.t: invalid"),
+    (meas(5, t=2.0**32), "meas.t: invalid"),
     (meas(5, v=0.0), "meas.v: out of range"),
     (meas(5, v=-3.0), "meas.v: out of range"),
     (meas(5, v=5000.0), "meas.v: out of range"),
@@ -59,6 +64,21 @@ def test_malformed_or_out_of_range_measurements_never_reach_the_core(daemon, pay
     if daemon.last_cmd != cmd_before:  # answered: with a hold
         assert daemon.last_cmd[2] == 0.0
     assert feed(daemon, meas(6))  # and the loop goes on
+
+
+@pytest.mark.parametrize("seq", [2**53, 2**63, 2**64 - 1])
+def test_a_seq_beyond_what_the_loop_holds_is_rejected_and_status_keeps_answering(daemon, seq):
+    """Issue 30: a frame with seq >= 2^63 passed the codec (u64), reached the loop-delay history (int64) and ended
+    the loop thread with OverflowError; a status query then failed in numpy. Now decode rejects it by name, the
+    seq after it is taken as the next sample, and status (with its loop-delay estimate) answers."""
+    for k in range(3):
+        assert feed(daemon, meas(k))
+    assert not feed(daemon, MEAS.struct.pack(0xE1, 1, seq, 3e-4, 15.0, 80.0, 80.15, 15.0))
+    assert daemon.rejected == {"meas.seq: invalid": 1}
+    assert daemon.last_reject == f"meas.seq: invalid ({seq} not in [0, 2^53))"
+    assert feed(daemon, meas(3)) and daemon.stats.missing_samples == 0
+    st = daemon.status()
+    assert st["last_sample"]["seq"] == 3 and st["loop_delay"]["window"] >= 0
 
 
 def test_duplicate_backwards_and_skipped_sequence_numbers(daemon):
