@@ -296,7 +296,7 @@ class Daemon(DaemonQueries):
         timeout_ns = int(self.cfg.loop.lockstep_timeout_s * 1e9)
         spin = self.cfg.loop.wait == "spin"
         catch_up = self.cfg.loop.catch_up
-        sub = self.meas_sub
+        sub, peek_seq = self.meas_sub, MEAS.peek_seq
         prev = idle = 0
         # no sample for this long -> degraded (every answered sample was already answered: nothing to publish)
         stale_ns = max(int(self.cfg.stale_periods * self.period_s * 1e9), SAMPLE_STALE_MIN_NS)
@@ -331,8 +331,9 @@ class Daemon(DaemonQueries):
                     item = q.get_nowait()
                 payload = item[1]
             start = now_ns()
-            if lockstep and self.neighbours:
-                seq = int.from_bytes(payload[2:10], "little")
+            # lockstep: wait for the neighbours' messages for this sample; not for a payload that is no measurement
+            # or whose seq is out of range (rejected by the tick: none of them stalls the loop)
+            if lockstep and self.neighbours and (seq := peek_seq(payload)) is not None:
                 deadline = start + timeout_ns
                 nbs = self.neighbours
                 while any(nb.seq < seq and nb.alive is not False and not nb.lagging for nb in nbs) \
