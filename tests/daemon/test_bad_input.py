@@ -251,3 +251,19 @@ def test_the_query_loop_answers_every_query_a_bad_one_and_an_unencodable_reply_i
     assert queries[2].got[0] == "err" and "could not be encoded" in queries[2].got[1]["error"]
     assert queries[3].got is None and not queries[3].dropped
     assert all(q.dropped for q in queries[:3])
+
+
+def test_the_load_peer_follows_only_the_plants_next_sample():
+    """The lockstep load answers each measurement on the plant's key with its z for that seq and t: a duplicate, an
+    older, a not-later or a malformed frame on that key (a corrupted or stray sender) is not the plant's next sample
+    and gets no answer (the controller, which rejects it, then waited for the load's z of the real one); seq 0 is
+    the plant restarting."""
+    from clients.peers.load import _plant_clock
+
+    assert _plant_clock(meas(5, t=0.5), None) == (5, 0.5)
+    assert _plant_clock(meas(6, t=0.6), (5, 0.5)) == (6, 0.6)
+    assert _plant_clock(meas(9, t=0.9), (5, 0.5)) == (9, 0.9)  # a gap
+    for frame in (meas(5, t=0.7), meas(3, t=0.7), meas(6, t=0.5), meas(6, t=0.7)[:-1],
+                  MEAS.struct.pack(0xE1, 1, 2**63, 1.0, 1, 80, 1, 1)):
+        assert _plant_clock(frame, (5, 0.5)) is None
+    assert _plant_clock(meas(0), (5, 0.5)) == (0, 0.0)  # a restart
