@@ -116,9 +116,9 @@ class Event(Msg):
     t: float = Field(description="s (sample time of the tick it belongs to, or monotonic time)")
     seq: Index = Field(description="measurement seq the event precedes (config changes apply before it)")
     kind: str = Field(description="what happened, e.g. config, reject, degraded, plant_restart, neighbour_alive, "
-                                  "neighbour_gone, forecast, recorder_drops")
+                                  "neighbour_gone, forecast, recorder_drops, failed")
     detail: str = Field(description="JSON text (config, forecast, plant_restart, recorder_drops) or plain text "
-                                    "(reject, degraded: the reason; neighbour_alive, neighbour_gone: its id)")
+                                    "(reject, degraded, failed: the reason; neighbour_alive, neighbour_gone: its id)")
 
 
 class Plant(Msg):

@@ -9,7 +9,9 @@ Threads:
 * the main thread waits for SIGINT/SIGTERM and shuts down within one period.
 
 Lifecycle: configured -> active <-> inactive (du/dt = 0 is published) -> shutdown; active -> degraded
-(stale measurements: du/dt = 0) -> active by itself when fresh measurements return.
+(stale measurements: du/dt = 0) -> active by itself when fresh measurements return; any -> failed when the loop
+thread (or the forecast worker's thread) ends by an unexpected exception: u held, nothing more published, the token
+withdrawn, the reason in status and on stderr, and ``energyctl run`` exits 1 (service.daemon.failure).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from service.core import core_metadata, effective_gain, make_core
 from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from service.core.interaction import outgoing_power_at as _outgoing_power_at
 from service.daemon.bus import key, latest, open_session, publisher, queued, serve_queries
+from service.daemon.failure import Failure
 from service.daemon.forecast_worker import ForecastWorker
 from service.daemon.loop_stats import HIST, LoopStats
 from service.daemon.neighbours import Neighbour
@@ -57,6 +60,7 @@ class Daemon(DaemonQueries):
         self.core = make_core(cfg.controller, cfg.model, self.period_s, cfg.delay_samples, cfg.core)
         self.stats = LoopStats(cfg.loop.stats_window)
         self.state = "configured"
+        self.failure = Failure(f"energyctl[{cfg.id}]")  # the loop's (or the forecast thread's) unexpected end
         self.log_error = ""  # the recorder could not even start
         self.alive_sub = None
         self.rejected: dict[str, int] = {}
@@ -131,7 +135,8 @@ class Daemon(DaemonQueries):
         self._fast = self._tick_writer()
         if c.forecast.enabled and self.neighbours:  # a worker process: started (and imported) before the loop runs
             self.forecaster = ForecastWorker(c.model, self.period_s, self.core.d, c.forecast, c.forecast_window_s,
-                                             on_result=self._forecast_done, impl=c.core)
+                                             on_result=self._forecast_done, impl=c.core, failure=self.failure,
+                                             on_failure=self._stop.set)
             self.forecaster.start()
         self._threads = [threading.Thread(target=serve_queries, name=leaf, daemon=True,
                                           args=(self.queryables[leaf], key(c.prefix, c.id, leaf), fn))
@@ -205,7 +210,8 @@ class Daemon(DaemonQueries):
                           v_max=c.meas_v_max_V, i_max=c.meas_i_max_A, seq_limit=seq[1], t_min=t[0], t_limit=t[1])
 
     def close(self) -> None:
-        self.state = "shutdown"
+        if not self.failure:
+            self.state = "shutdown"
         if getattr(self, "_fast", None) is not None:
             self._fast.close()  # its view of the recorder's ring goes before the ring does
             self._fast = None
@@ -243,8 +249,30 @@ class Daemon(DaemonQueries):
                 self._clock_loop(max_ticks)
             else:
                 self._sample_loop(max_ticks)
+        except Exception as e:  # noqa: BLE001 - whatever ends the loop: the component fails, visibly (_safe_state)
+            self.failure.record("loop", e)
         finally:
             gc.unfreeze()
+            if self.failure:
+                self._safe_state()
+
+    def _safe_state(self) -> None:
+        """After a failure (the loop's own, or another thread's that stopped it): hold u (one hold for the last sample
+        answered, as a degrade does: a plant waiting for that answer applies du/dt = 0, and without commands it holds
+        u after the last plan), publish nothing more (the loop has ended), withdraw the liveliness token (a plant, a
+        coordinator, a supervisor sees the controller gone), and say so in status, the log and the events."""
+        self.state = "failed"
+        ls = self.last_sample
+        for step in (lambda: ls is not None and self.cmd_pub.put(CMD.encode(ls[0], ls[1], 0.0, 0.0, True)),
+                     lambda: self.token is not None and self.token.undeclare(),
+                     lambda: self.recorder is not None and self.recorder.offer(
+                         self.t_ev, ls[1] if ls else 0.0, (ls[1] if ls else 0.0, max(self._last_seq, 0), "failed",
+                                                           self.failure.reason))):
+            try:
+                step()
+            except Exception:  # noqa: BLE001 - each step on its own: one that fails does not skip the others
+                pass
+        self.token = None
 
     def _clock_loop(self, max_ticks: int | None) -> None:
         period = int(round(self.period_s * 1e9))
