@@ -130,7 +130,6 @@ class Codec:
         self.ranges = field_ranges(model) if ranges is None else ranges
         # per bounded field: position, low, high and whether high is included when checked inline, name, range
         self._checks = tuple((self.fields.index(n), *_inline(r), n, r) for n, r in self.ranges.items())
-        self._head = struct.Struct("<BBQ") if self.fields[0] == "seq" else None  # for peek_seq
 
     def encode(self, *values) -> bytes:
         """Values in model field order (no validation: the hot path builds them itself)."""
@@ -165,16 +164,6 @@ class Codec:
                 raise ValueError(f"{self.name}.{name}: range {r[4]} is not of the form [low, high)")
             out[name] = (lo, hi)
         return out
-
-    def peek_seq(self, payload: bytes) -> int | None:
-        """The ``seq`` (the first field) of a payload of this message's size, magic and version, if admissible, before
-        the rest is decoded (a lockstep loop waits for its neighbours by it); None for any other payload."""
-        if len(payload) != self.size:
-            return None
-        magic, version, seq = self._head.unpack_from(payload)
-        if magic != self.magic or version != VERSION or not admits(self.ranges["seq"], seq):
-            return None
-        return seq
 
     def to_dict(self, vals: tuple) -> dict:
         return dict(zip(self.fields, vals, strict=True))

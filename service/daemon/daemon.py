@@ -324,7 +324,7 @@ class Daemon(DaemonQueries):
         timeout_ns = int(self.cfg.loop.lockstep_timeout_s * 1e9)
         spin = self.cfg.loop.wait == "spin"
         catch_up = self.cfg.loop.catch_up
-        sub, peek_seq = self.meas_sub, MEAS.peek_seq
+        sub = self.meas_sub
         prev = idle = 0
         # no sample for this long -> degraded (every answered sample was already answered: nothing to publish)
         stale_ns = max(int(self.cfg.stale_periods * self.period_s * 1e9), SAMPLE_STALE_MIN_NS)
@@ -358,31 +358,38 @@ class Daemon(DaemonQueries):
                 while q.qsize() >= catch_up:  # keep the newest catch_up; this one first, the rest next round
                     item = q.get_nowait()
                 payload = item[1]
-            start = now_ns()
-            # lockstep: wait for the neighbours' messages for this sample; not for a payload that is no measurement
-            # or whose seq is out of range (rejected by the tick: none of them stalls the loop)
-            if lockstep and self.neighbours and (seq := peek_seq(payload)) is not None:
-                deadline = start + timeout_ns
-                nbs = self.neighbours
-                while any(nb.seq < seq and nb.alive is not False and not nb.lagging for nb in nbs) \
-                        and not stop.is_set():
-                    self._poll_neighbours(now_ns())
-                    if now_ns() > deadline:  # a hung neighbour stalls one tick, not every tick
-                        stats.lockstep_timeouts += 1
-                        for nb in nbs:
-                            nb.lagging = nb.lagging or nb.seq < seq
-                        break
-                    time.sleep(20e-6)
-                for nb in nbs:  # keeping pace again (it answered the previous sample): wait for it from now on
-                    if nb.lagging and nb.seq >= seq - 1:
-                        nb.lagging = False
-            t_exec = now_ns()
-            self._tick(payload, t_exec)
+            start = t_exec = now_ns()
+            if lockstep and self.neighbours:
+                # the sample is checked first; only one the core will step on waits for the neighbours' messages of
+                # its seq: a frame rejected or held (malformed, out of range, a duplicate seq: none of them uses
+                # P^{r,in}) is answered at once and never stalls the loop
+                if (v := self._sample(payload, start)) is not None:
+                    self._await_neighbours(v[0], start + timeout_ns)
+                    t_exec = now_ns()
+                    self._step(v, t_exec)
+            else:
+                self._tick(payload, t_exec)
             end = now_ns()
             stats.record(start - prev if prev else 0, end - t_exec, self.put_ns, self.control_ns)
             prev = start
             if max_ticks is not None and stats.ticks >= max_ticks:
                 break
+
+    def _await_neighbours(self, seq: int, deadline: int) -> None:
+        """Lockstep: poll until every neighbour's newest message is for ``seq`` or later (not one whose token is gone
+        nor one lagging), or the deadline (ns) passes: then count the timeout and mark the ones behind lagging."""
+        nbs, now_ns, stop = self.neighbours, time.monotonic_ns, self._stop
+        while any(nb.seq < seq and nb.alive is not False and not nb.lagging for nb in nbs) and not stop.is_set():
+            self._poll_neighbours(now_ns())
+            if now_ns() > deadline:  # a hung neighbour stalls one tick, not every tick
+                self.stats.lockstep_timeouts += 1
+                for nb in nbs:
+                    nb.lagging = nb.lagging or nb.seq < seq
+                break
+            time.sleep(20e-6)
+        for nb in nbs:  # keeping pace again (it answered the previous sample): wait for it from now on
+            if nb.lagging and nb.seq >= seq - 1:
+                nb.lagging = False
 
     def _reject(self, reason: str, now: int, detail: str = "") -> None:
         """Count by reason class (bounded keys); keep the detail of the last one; record it as a diagnostics
@@ -527,15 +534,29 @@ class Daemon(DaemonQueries):
         return v
 
     def _tick(self, payload: bytes, now: int) -> None:
+        """One measurement: checked (_sample), then stepped on and answered (_step) if it is the next sample."""
+        if (v := self._sample(payload, now)) is not None:
+            self._step(v, now)
+
+    def _sample(self, payload: bytes, now: int) -> tuple | None:
+        """The tick's first half: the neighbours polled, the measurement's values if the core is to step on it; else
+        None, the payload rejected or held (_checked)."""
         self.put_ns = self.control_ns = 0
         self._poll_neighbours(now)
         fast = self._fast
         # an ordinary next sample passes the compiled check (TickWriter.accept, the same conditions as _checked);
         # anything else goes through _checked, which names and counts what it refuses
-        ls = self.last_sample
-        v = fast.accept(payload, self._last_seq, ls[1] if ls else 0.0) if fast is not None else None
-        if v is None and (v := self._checked(payload, now)) is None:
-            return
+        if fast is not None:
+            ls = self.last_sample
+            v = fast.accept(payload, self._last_seq, ls[1] if ls else 0.0)
+            if v is not None:
+                return v
+        return self._checked(payload, now)
+
+    def _step(self, v: tuple, now: int) -> None:
+        """The tick's second half, for the sample v (_sample's): P^{r,in} from the neighbours, the core's step, the
+        command, the record; ``now``: the loop's clock (ns) for the neighbours' freshness."""
+        fast = self._fast
         t_control = _now_ns()
         seq, t = v[0], v[1]
         self._take_sample(v)

@@ -174,12 +174,12 @@ def test_the_daemon_forecasts_each_announced_window_and_checks_it_ahead(daemon_a
     assert forecast()["reason"].startswith("Qdot^r,out")
 
 
-def test_a_lockstep_loop_does_not_wait_for_its_neighbours_on_a_payload_that_is_no_admissible_measurement():
-    """Lockstep waits for the neighbours' messages of the sample's seq, read before the rest is decoded: read off any
-    payload, a bit flip in a frame's magic, a truncated frame or a seq beyond 2^53 held the loop for the whole
-    lockstep_timeout_s and marked every neighbour lagging. Now only a payload of the measurement's size, magic and
-    version with an admissible seq is waited for; the others are rejected at once, and the next sample is answered
-    with the neighbours still followed."""
+def test_a_lockstep_loop_waits_for_its_neighbours_only_on_a_sample_it_steps_on():
+    """Lockstep waited for the neighbours' messages of the seq read off any payload before checking it: a bit flip in
+    a frame's magic, a truncated frame, a seq beyond 2^53, a NaN, a v out of range (held) with a seq far ahead held
+    the loop for the whole lockstep_timeout_s and marked every neighbour lagging. Now the sample is checked first and
+    only one the core steps on is waited for; the others are rejected (or held: answered with du/dt = 0) at once,
+    and the next sample is answered with the neighbours still followed."""
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=True, rate_hz=10000.0)
     comp["loop"].update(catch_up=8, lockstep_timeout_s=1.0)
@@ -195,12 +195,14 @@ def test_a_lockstep_loop_does_not_wait_for_its_neighbours_on_a_payload_that_is_n
         pub = d.session.declare_publisher("energyctl/source/meas")
         far = MEAS.struct.pack(0xE1, 1, 2**40, 1e-4, 15.0, 80.0, 80.15, 15.0)
         bad = [b"\xe2" + far[1:], far[:1] + b"\x07" + far[2:], far[:20], far + b"\x00",
-               MEAS.struct.pack(0xE1, 1, 2**63, 1e-4, 15.0, 80.0, 80.15, 15.0)]
+               MEAS.struct.pack(0xE1, 1, 2**63, 1e-4, 15.0, 80.0, 80.15, 15.0),
+               MEAS.encode(2**40, 1e-4, float("nan"), 80.0, 80.15, 15.0),
+               MEAS.encode(2**40, 1e-4, 15.0, 8000.0, 80.15, 15.0)]  # held: answered with a hold, not stepped on
         for payload in [*bad, MEAS.encode(1, 1e-4, 15.0, 80.0, 80.15, 15.0)]:
             pub.put(payload)
         assert wait_until(lambda: d.meas_q.qsize() == len(bad) + 1, 5.0)
         d.run_loop(max_ticks=len(bad) + 1)
-        assert wait_until(lambda: got == [1], 5.0), got
+        assert wait_until(lambda: got == [2**40, 1], 5.0), got
         assert d.stats.lockstep_timeouts == 0 and not nb.lagging
         assert sum(d.rejected.values()) == len(bad), d.rejected
         sub.undeclare()
