@@ -7,7 +7,7 @@ import math
 import struct
 
 import pytest
-from conftest import SCENARIOS, QueryStub
+from conftest import SCENARIOS, QueryStub, RingStub
 
 from clients.live import configs_from_scenario
 from schemas.codec import CMD, MEAS, Z
@@ -104,20 +104,8 @@ def test_plant_restart_reinitialises_the_estimator(daemon):
 
 def test_bad_neighbour_messages_are_counted_and_a_local_reference_is_used_when_silent(daemon):
     nb = daemon.neighbours[0]
-
-    class Msg:
-        def __init__(self, b):
-            self.payload = type("P", (), {"to_bytes": lambda s: b})()
-
-    class Ring:
-        def __init__(self, items):
-            self.items = list(items)
-
-        def try_recv(self):
-            return self.items.pop(0) if self.items else None
-
     bad = Z.struct.pack(0x21, 1, 1, 0.0, math.nan, 0, 0, 0, 0, 0, 0, 0, 0, 0)
-    nb.sub = Ring([Msg(bad), Msg(b"junk")])  # one message per tick, as from a ring of one
+    nb.sub = RingStub([bad, b"junk"])  # one message per tick, as from a ring of one
     assert feed(daemon, meas(0)) and feed(daemon, meas(1))
     assert daemon.rejected == {"load.P_r_out: invalid": 1, "load.<payload>: invalid": 1}
     assert nb.P == 1200.0  # the last good value stands

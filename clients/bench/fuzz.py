@@ -1,0 +1,190 @@
+"""Wire fuzzing: bad frames built from valid ones, what the protocol says each gets, and ``energyctl bench fuzz``.
+
+Frames are valid messages changed by mutations: ``("flip", bit)`` flips one bit, ``("set", field, value)`` writes a
+field with its wire type (the boundaries below, NaN, ±inf), ``("cut", n)`` keeps the first n bytes, ``("grow", b)``
+appends bytes. Which of them are bad, and what a receiver does with each, comes from the protocol as docs/protocol.md
+states it (sizes, magics, finiteness, the admissible ranges, the daemon's checks), written out here on purpose rather
+than taken from the decoders they check (schemas.codec).
+
+The property tests (tests/wire_fuzz.py) draw mutations with hypothesis; the bench draws them with a seeded
+``random.Random``: frames sent between the samples of a live lockstep stack, every one of them bad, and then whether
+the loop kept ticking, every frame was counted under the reason the protocol gives it, no command followed one, and v
+stayed within ±2 % of v_ref.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import struct
+
+# the boundary values a field is set to: those of the issue (0, 2^31, 2^32, 2^53, 2^63, 2^64 - 1), around the
+# admissible ranges' ends, and the non-finite ones
+U64_EDGES = (0, 1, 2**31, 2**32, 2**53 - 1, 2**53, 2**63, 2**64 - 1)
+F64_EDGES = (0.0, -0.0, 5e-324, -1.0, 2.0**31, 2.0**32, 2.0**53, 2.0**63, 2.0**64, 1.7976931348623157e308,
+             -1.7976931348623157e308, math.nan, math.inf, -math.inf)
+U8_EDGES = (0, 1, 2, 255)
+SEQ_LIMIT, T_LIMIT = 2**53, 2.0**32  # docs/protocol.md, "Admissible ranges"
+
+# the fixed-size messages as docs/protocol.md lays them out: magic, struct format, field names
+SPECS = {
+    "meas": (0xE1, "<BBQddddd", ("seq", "t", "i", "v", "u", "i_load")),
+    "cmd": (0xC1, "<BBQdddB", ("seq", "t", "du_dt", "du_dt_next", "limited")),
+    "z": (0x21, "<BBQddddddQdddd", ("seq", "t", "P_r_out", "P_r_out_dot", "Qdot_r_out", "z_out0", "z_out1", "window",
+                                    "P_min", "P_max", "P_dot_min", "P_dot_max")),
+}
+GRID_HEAD = "<BBQdHHH"  # magic 0x47, version, seq, t, then the counts n_s, n_b, n_l; then 3 n_s + n_b + n_l f64
+
+
+def layout(kind: str, frame: bytes | None = None) -> list[tuple[str, str, int]]:
+    """(field, struct code, offset) of every field of a message kind, the header bytes included; for ``grid`` those
+    of this frame (its counts say how many values follow)."""
+    if kind == "grid":
+        _, _, _, _, ns, nb, nl = struct.unpack_from(GRID_HEAD, frame)
+        names = (["magic", "version", "seq", "t", "n_s", "n_b", "n_l"]
+                 + [f"{a}[{j}]" for a, n in (("v", ns), ("i_out", ns), ("connected", ns), ("bus_v", nb),
+                                              ("load_P", nl)) for j in range(n)])
+        fmt = GRID_HEAD[1:] + "d" * (3 * ns + nb + nl)
+    else:
+        names, fmt = ["magic", "version", *SPECS[kind][2]], SPECS[kind][1][1:]
+    out, off = [], 0
+    for name, c in zip(names, fmt, strict=True):
+        out.append((name, c, off))
+        off += struct.calcsize("<" + c)
+    return out
+
+
+def mutate(kind: str, frame: bytes, mutations) -> bytes:
+    """The frame with the mutations applied in order (a mutation out of the frame's bytes, after a cut, is skipped)."""
+    fields = {name: (c, off) for name, c, off in layout(kind, frame)}
+    b = bytearray(frame)
+    for m in mutations:
+        if m[0] == "flip" and m[1] // 8 < len(b):
+            b[m[1] // 8] ^= 1 << (m[1] % 8)
+        elif m[0] == "set" and m[1] in fields:
+            c, off = fields[m[1]]
+            if off + struct.calcsize("<" + c) <= len(b):
+                x = m[2]
+                if c == "d":
+                    x = float(x)
+                else:  # an integer of the wire type: edges beyond it wrap, a float becomes its integer bits
+                    x = int(x) if not isinstance(x, float) else struct.unpack("<Q", struct.pack("<d", x))[0]
+                    x &= (1 << (8 * struct.calcsize("<" + c))) - 1
+                struct.pack_into("<" + c, b, off, x)
+        elif m[0] == "cut":
+            del b[m[1]:]
+        elif m[0] == "grow":
+            b += m[1]
+    return bytes(b)
+
+
+def decode_verdict(kind: str, frame: bytes, prefix: str) -> str | None:
+    """The rejection a receiver names for a frame of a fixed-size kind (``prefix.<field>: invalid``), checked in the
+    protocol's order: size, magic, version, every f64 finite, every field in its admissible range; None if it
+    decodes."""
+    magic, fmt, names = SPECS[kind]
+    if len(frame) != struct.calcsize(fmt):
+        return f"{prefix}.<payload>: invalid"
+    vals = struct.unpack(fmt, frame)
+    if vals[0] != magic:
+        return f"{prefix}.<magic>: invalid"
+    if vals[1] != 1:
+        return f"{prefix}.<version>: invalid"
+    codes = fmt[3:]
+    for name, c, x in zip(names, codes, vals[2:], strict=True):
+        if c == "d" and not math.isfinite(x):
+            return f"{prefix}.{name}: invalid"
+    for name, c, x in zip(names, codes, vals[2:], strict=True):
+        bad = ((c == "Q" and x >= SEQ_LIMIT) or (name == "t" and not 0.0 <= x < T_LIMIT)
+               or (c == "B" and x not in (0, 1)))
+        if bad:
+            return f"{prefix}.{name}: invalid"
+    return None
+
+
+REJECTED, HELD = "rejected", "held"
+
+
+def meas_verdict(frame: bytes, v_range: tuple[float, float], i_max: float, last_seq: int) -> tuple[str, str] | None:
+    """What the controller does with a measurement (docs/protocol.md, "What the daemon does with each input"), after
+    accepting samples up to ``last_seq`` (>= 1): (REJECTED, reason) — no answer —, (HELD, reason) — answered with a
+    hold —, or None: a sample it steps on (the next one, a gap, or seq 0: the plant restarting), not a bad frame."""
+    why = decode_verdict("meas", frame, "meas")
+    if why is not None:
+        return REJECTED, why
+    seq, _t, i, v, _u, i_load = struct.unpack(SPECS["meas"][1], frame)[2:]
+    if not v_range[0] <= v <= v_range[1]:
+        return HELD, "meas.v: out of range"
+    if abs(i) > i_max or abs(i_load) > i_max:
+        return HELD, f"meas.{'i' if abs(i) > i_max else 'i_load'}: out of range"
+    if seq == 0 or seq > last_seq:
+        return None
+    return REJECTED, "meas.seq: duplicate or not increasing"
+
+
+def grid_verdict(frame: bytes, sizes: tuple[int, int, int], T: float, v_nom: float, last_seq: int) -> str | None:
+    """Why the coordinator refuses a grid sample after taking samples up to ``last_seq`` (>= 1): malformed, non-finite,
+    out of its admissible range, not the scenario's counts, t not seq x T, implausible values (schema checks and the
+    coordinator's: v and bus_v within [0, 2.5 v_nom], |i_out| <= 1e4 A, |load_P| <= 1e7 W), or an old seq; None for
+    one it takes (a later seq, or 0: the rig restarting)."""
+    h = struct.calcsize(GRID_HEAD)
+    if len(frame) < h:
+        return "grid.<payload>: invalid"
+    magic, version, seq, t, ns, nb, nl = struct.unpack_from(GRID_HEAD, frame)
+    if magic != 0x47:
+        return "grid.<magic>: invalid"
+    if version != 1:
+        return "grid.<version>: invalid"
+    if len(frame) != h + 8 * (3 * ns + nb + nl):
+        return "grid.<payload>: invalid"
+    vals = struct.unpack_from(f"<{3 * ns + nb + nl}d", frame, h)
+    if not math.isfinite(t) or not all(map(math.isfinite, vals)):
+        return "grid: not finite"
+    if seq >= SEQ_LIMIT or not 0.0 <= t < T_LIMIT:
+        return "grid: out of its admissible range"
+    if (ns, nb, nl) != sizes:
+        return "grid: not the scenario's sizes"
+    if abs(t - seq * T) > 0.5 * T:
+        return "grid.t: not seq x T"
+    v, i_out, bus_v, load_P = vals[:ns], vals[ns:2 * ns], vals[3 * ns:3 * ns + nb], vals[3 * ns + nb:]
+    if (any(not 0.0 <= x <= 2.5 * v_nom for x in (*v, *bus_v)) or any(abs(x) > 1e4 for x in i_out)
+            or any(abs(x) > 1e7 for x in load_P)):
+        return "grid: implausible"
+    if seq == 0 or seq > last_seq:
+        return None
+    return "grid.seq: not after the newest"
+
+
+# ---------------------------------------------------------------- random frames (the bench)
+
+def random_mutations(rng: random.Random, kind: str, frame: bytes) -> list:
+    """One to three mutations of the kinds the property tests draw: bit flips, a field at a boundary or non-finite,
+    a cut, bytes appended."""
+    fields = layout(kind, frame)
+    out = []
+    for _ in range(rng.randint(1, 3)):
+        what = rng.random()
+        if what < 0.4:
+            out.append(("flip", rng.randrange(8 * len(frame))))
+        elif what < 0.85:
+            name, c, _ = rng.choice(fields)
+            out.append(("set", name, rng.choice(F64_EDGES if c == "d" else U64_EDGES if c == "Q" else U8_EDGES)))
+        elif what < 0.95:
+            out.append(("cut", rng.randrange(len(frame))))
+        else:
+            out.append(("grow", bytes(rng.randrange(256) for _ in range(rng.randint(1, 9)))))
+    return out
+
+
+def random_bad_meas(rng: random.Random, seq_max: int, v_range: tuple[float, float], i_max: float,
+                    period_s: float) -> tuple[bytes, tuple[str, str]]:
+    """A bad measurement for a controller past sample seq_max: a valid one of a seq it has passed (1..seq_max),
+    mutated until the protocol says it is rejected or held; with its verdict."""
+    while True:
+        seq = rng.randint(1, seq_max)
+        base = struct.pack(SPECS["meas"][1], 0xE1, 1, seq, seq * period_s, rng.uniform(1.0, 30.0),
+                           rng.uniform(70.0, 90.0), rng.uniform(70.0, 90.0), rng.uniform(1.0, 30.0))
+        frame = mutate("meas", base, random_mutations(rng, "meas", base))
+        verdict = meas_verdict(frame, v_range, i_max, seq_max)
+        if verdict is not None:
+            return frame, verdict
