@@ -15,14 +15,13 @@ from hypothesis import strategies as st
 
 from clients.bench.fuzz import (
     F64_EDGES,
-    HELD,
     SPECS,
     U8_EDGES,
     U64_EDGES,
     decode_verdict,
+    fuzz_verdict,
     grid_verdict,
     layout,
-    meas_verdict,
     mutate,
 )
 
@@ -47,16 +46,14 @@ def mutations(kind: str, frame: bytes):
 
 @st.composite
 def bad_meas(draw, seq_max: int, v_range: tuple[float, float], i_max: float, period_s: float):
-    """(frame, (REJECTED or HELD, reason)) for a controller past sample seq_max: a valid measurement of a seq it has
-    passed, mutated. A held one is answered with a hold of its own seq: only one of a passed seq (<= seq_max) is
-    kept, so that no plant takes that hold for the sample it waits for."""
+    """(frame, (REJECTED, reason)) for a controller past sample seq_max: a valid measurement of a seq it has passed,
+    mutated until the controller rejects it (clients.bench.fuzz.fuzz_verdict)."""
     seq = draw(st.integers(1, seq_max))
     base = struct.pack(SPECS["meas"][1], 0xE1, 1, seq, seq * period_s, draw(PLAUSIBLE), draw(st.floats(70.0, 90.0)),
                        draw(st.floats(70.0, 90.0)), draw(PLAUSIBLE))
     frame = mutate("meas", base, draw(mutations("meas", base)))
-    verdict = meas_verdict(frame, v_range, i_max, seq_max)
+    verdict = fuzz_verdict(frame, v_range, i_max, seq_max)
     assume(verdict is not None)
-    assume(verdict[0] != HELD or struct.unpack_from("<Q", frame, 2)[0] <= seq_max)
     return frame, verdict
 
 

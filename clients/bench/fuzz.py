@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import random
 import struct
+from collections import Counter
 
 # the boundary values a field is set to: those of the issue (0, 2^31, 2^32, 2^53, 2^63, 2^64 - 1), around the
 # admissible ranges' ends, and the non-finite ones
@@ -113,13 +114,24 @@ def meas_verdict(frame: bytes, v_range: tuple[float, float], i_max: float, last_
     if why is not None:
         return REJECTED, why
     seq, _t, i, v, _u, i_load = struct.unpack(SPECS["meas"][1], frame)[2:]
+    if 0 < seq <= last_seq:
+        return REJECTED, "meas.seq: duplicate or not increasing"
     if not v_range[0] <= v <= v_range[1]:
         return HELD, "meas.v: out of range"
     if abs(i) > i_max or abs(i_load) > i_max:
         return HELD, f"meas.{'i' if abs(i) > i_max else 'i_load'}: out of range"
-    if seq == 0 or seq > last_seq:
-        return None
-    return REJECTED, "meas.seq: duplicate or not increasing"
+    return None
+
+
+def fuzz_verdict(frame: bytes, v_range: tuple[float, float], i_max: float, seq_max: int) -> tuple[str, str] | None:
+    """meas_verdict for a fuzz frame beside a running stack past sample seq_max, and None for a held one too: that is
+    a sample of a new seq (0, or one the plant has not sent yet) with values out of range, and the protocol answers
+    it (a lockstep plant would take that hold for its own sample), and the load stand-in, which follows the
+    measurements' seq and t (not their v: it knows no controller's ranges), would take it for a restart or a jump
+    ahead. A held frame is the plausibility of a sample, not a range a decoder checks (tests/daemon/test_bad_input.py
+    holds them); every frame this keeps is rejected without an answer."""
+    verdict = meas_verdict(frame, v_range, i_max, seq_max)
+    return None if verdict is None or verdict[0] == HELD else verdict
 
 
 def grid_verdict(frame: bytes, sizes: tuple[int, int, int], T: float, v_nom: float, last_seq: int) -> str | None:
@@ -179,12 +191,70 @@ def random_mutations(rng: random.Random, kind: str, frame: bytes) -> list:
 def random_bad_meas(rng: random.Random, seq_max: int, v_range: tuple[float, float], i_max: float,
                     period_s: float) -> tuple[bytes, tuple[str, str]]:
     """A bad measurement for a controller past sample seq_max: a valid one of a seq it has passed (1..seq_max),
-    mutated until the protocol says it is rejected or held; with its verdict."""
+    mutated until the protocol says it is rejected or held (fuzz_verdict); with its verdict."""
     while True:
         seq = rng.randint(1, seq_max)
         base = struct.pack(SPECS["meas"][1], 0xE1, 1, seq, seq * period_s, rng.uniform(1.0, 30.0),
                            rng.uniform(70.0, 90.0), rng.uniform(70.0, 90.0), rng.uniform(1.0, 30.0))
         frame = mutate("meas", base, random_mutations(rng, "meas", base))
-        verdict = meas_verdict(frame, v_range, i_max, seq_max)
+        verdict = fuzz_verdict(frame, v_range, i_max, seq_max)
         if verdict is not None:
             return frame, verdict
+
+
+# ---------------------------------------------------------------- a live stack under fuzz (the tests and the bench)
+
+class StackFuzzer:
+    """A running stack (clients.bench.recovery.Rig: controller ``source``, its load and plant) and a fuzzer beside
+    it: its own publisher on the plant's key (Zenoh's put, congestion control BLOCK: none of its frames is dropped on
+    the way), and every command the controller sends from then on. Fuzz frames carry seqs up to ``seq_max``, which
+    the plant has passed before fuzzing starts."""
+
+    def __init__(self, rig, seq_max: int, after_seq: int | None = None, timeout_s: float = 60.0):
+        """Starts once the plant is past sample after_seq (default 2 seq_max)."""
+        import zenoh
+
+        from schemas.codec import CMD
+
+        self.rig, self.seq_max = rig, seq_max
+        after = 2 * seq_max if after_seq is None else after_seq
+        self.start = rig.wait_status(lambda s: (s.get("last_sample") or {}).get("seq", 0) > after, timeout_s)
+        if self.start is None:
+            raise RuntimeError(f"the stack did not pass sample {after} within {timeout_s:g} s")
+        self.cmds: list[tuple] = []
+        s = rig.session()
+        self.sub = s.declare_subscriber("energyctl/source/cmd", lambda m: self.cmds.append(
+            CMD.decode(m.payload.to_bytes())))
+        self.pub = s.declare_publisher("energyctl/source/meas", congestion_control=zenoh.CongestionControl.BLOCK)
+        self.want = Counter(self.start["rejected"])  # what the controller should have counted, by reason
+        self.sent = 0
+
+    def send(self, frames, timeout_s: float = 20.0) -> dict | None:
+        """Put (frame, (kind, reason)) pairs; the controller's status once it counted each under its reason and
+        every command it sent before has come (caught_up), None if that is not within timeout_s."""
+        for frame, (_kind, reason) in frames:
+            self.pub.put(frame)
+            self.want[reason] += 1
+        self.sent += len(frames)
+        st = self.rig.wait_status(lambda s: Counter(s["rejected"]) == self.want, timeout_s)
+        return st if st is not None and self.caught_up(st["last_sample"]["seq"], timeout_s) else None
+
+    def caught_up(self, seq: int, timeout_s: float) -> bool:
+        """Wait until the command of a plant sample after ``seq`` came: the controller put it after every command it
+        may have put for a frame it had counted by then, on the same publisher, which Zenoh delivers in order."""
+        from clients.live import wait_until
+
+        return wait_until(lambda: any(c[0] > seq for c in reversed(self.cmds[-64:])), timeout_s)
+
+    def commands_after_bad_frames(self) -> int:
+        """Commands in the fuzz frames' seqs (the plant passed them before fuzzing): none may come."""
+        return sum(1 for c in list(self.cmds) if c[0] <= self.seq_max)
+
+    def answered_twice(self) -> int:
+        """The plant's samples (after seq_max) answered more than once."""
+        real = [c[0] for c in list(self.cmds) if c[0] > self.seq_max]
+        return len(real) - len(set(real))
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.pub.undeclare()

@@ -505,14 +505,20 @@ class Daemon(DaemonQueries):
 
     def _checked(self, payload: bytes, now: int) -> tuple | None:
         """The measurement's values if it is the next sample to step on (a restart re-initialises the core first);
-        else None, after rejecting it (counted, named; malformed, a duplicate seq) or holding it (answered with
-        du/dt = 0: out of range, time not advancing)."""
+        else None, after rejecting it (counted, named; malformed, a seq already passed: no answer) or holding it
+        (answered with du/dt = 0: out of range, time not advancing)."""
         try:
             v = MEAS.decode(payload)
         except DecodeError as e:
             self._reject(f"meas.{e.field}: invalid", now, e.reason)
             return None
         seq, t = v[0], v[1]
+        restart = seq == 0 and self._last_seq > 0
+        # a seq already passed, whatever its values: no plant waits for its answer, so it gets none (its hold answered
+        # a sample long gone, and a burst of such frames crowded the command key, whose puts drop under congestion)
+        if seq <= self._last_seq and not restart:
+            self._reject("meas.seq: duplicate or not increasing", now)
+            return None
         c = self.cfg
         if not c.meas_v_min_V <= v[3] <= c.meas_v_max_V:
             return self._hold(v, now, "meas.v: out of range",
@@ -520,15 +526,12 @@ class Daemon(DaemonQueries):
         if abs(v[2]) > c.meas_i_max_A or abs(v[5]) > c.meas_i_max_A:
             field = "i" if abs(v[2]) > c.meas_i_max_A else "i_load"
             return self._hold(v, now, f"meas.{field}: out of range", f"beyond ±{c.meas_i_max_A:g} A")
-        if seq == 0 and self._last_seq > 0:  # the plant restarted: its history is not ours any more
+        if restart:  # the plant restarted: its history is not ours any more
             self.core.reset()
             self._last_seq = -1
             self.restarts += 1
             if self.recorder is not None:
                 self.recorder.offer(self.t_ev, t, (t, 0, "plant_restart", "{}"))
-        if seq <= self._last_seq:
-            self._reject("meas.seq: duplicate or not increasing", now)
-            return None
         if self.last_sample is not None and self._last_seq >= 0 and t <= self.last_sample[1]:
             return self._hold(v, now, "meas.t: not after the previous sample")
         return v

@@ -93,6 +93,20 @@ def test_duplicate_backwards_and_skipped_sequence_numbers(daemon):
     assert daemon.stats.missing_samples == 4
 
 
+def test_a_passed_seq_gets_no_answer_whatever_its_values_a_new_one_out_of_range_is_held(daemon):
+    """A frame of a seq already answered is rejected before its values are looked at: no plant waits for its answer
+    (a burst of holds for passed samples crowded the command key, whose puts drop under congestion). A new seq with v
+    out of range is held: its hold answers the sample the plant waits for."""
+    for k in range(3):
+        assert feed(daemon, meas(k))
+    answered = daemon.last_cmd
+    assert not feed(daemon, meas(1, v=5000.0)) and daemon.last_cmd == answered
+    assert daemon.rejected == {"meas.seq: duplicate or not increasing": 1}
+    assert not feed(daemon, meas(3, v=5000.0)) and daemon.last_cmd == (3, 3 * 1e-4, 0.0, 0.0, True)
+    assert daemon.rejected["meas.v: out of range"] == 1
+    assert feed(daemon, meas(3))  # the held sample did not become the previous one
+
+
 def test_plant_restart_reinitialises_the_estimator(daemon):
     for k in range(50):
         feed(daemon, meas(k, i=15.0 + 0.01 * k))
