@@ -14,6 +14,7 @@ stayed within ±2 % of v_ref.
 
 from __future__ import annotations
 
+import json
 import math
 import random
 import struct
@@ -258,3 +259,107 @@ class StackFuzzer:
     def close(self) -> None:
         self.sub.undeclare()
         self.pub.undeclare()
+
+
+def bench_fuzz(frames: int = 100_000, batch: int = 200, seed: int = 1, seq_max: int = 100, workdir: str | None = None,
+               progress=None) -> dict:
+    """``energyctl bench fuzz``: ``frames`` bad measurements (random_bad_meas) in batches of ``batch`` between the
+    samples of the paper's constant-load stack in lockstep at 10 kHz, each batch waited for until the controller
+    counted it. Reports frames sent against counted (by reason), the loop's deaths and the tracebacks of every
+    process, commands that followed a bad frame, lockstep timeouts, v's largest deviation from v_ref after 50 ms (the
+    plant's own trace), and the rate."""
+    import signal
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from clients.bench.recovery import Rig
+    from clients.live import _last_json, wait_until
+    from schemas.component import ComponentConfig, config_from_dict
+    from schemas.scenario import load_scenario
+
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper-constant-load.toml")
+    rng = random.Random(seed)
+    base = Path(workdir or tempfile.mkdtemp(prefix="energyctl-fuzz-"))
+    v_ref = scn.controller.v_ref_V
+    out: dict = {"frames": frames, "batch": batch, "seed": seed, "rate_hz": scn.timing.control_rate_hz,
+                 "pacing": "lockstep", "workdir": str(base)}
+    with Rig(scn, base, lockstep=True, duration_s=600.0, comp={"loop": {"catch_up": 256}}) as rig:
+        c = config_from_dict(ComponentConfig, rig.cfg["daemon"])
+        v_range, i_max, T = (c.meas_v_min_V, c.meas_v_max_V), c.meas_i_max_A, 1.0 / c.loop.rate_hz
+        for name in ("daemon", "load", "plant"):
+            rig.start(name)
+        fz = StackFuzzer(rig, seq_max, after_seq=round(0.05 / T))  # from 50 ms on: v settled (the plant's metric)
+        t0, seq0 = time.monotonic(), fz.start["last_sample"]["seq"]
+        st, lost_at = fz.start, None
+        while fz.sent < frames:
+            n = min(batch, frames - fz.sent)
+            st = fz.send([random_bad_meas(rng, seq_max, v_range, i_max, T) for _ in range(n)])
+            if st is None:
+                lost_at = fz.sent
+                break
+            if progress is not None and fz.sent % (50 * batch) == 0:
+                progress(f"{fz.sent} frames, sample {st['last_sample']['seq']}, v {st['last_sample']['v']:.3f} V")
+        wall = time.monotonic() - t0
+        last = rig.status() or st or {}
+        out.update(wall_s=round(wall, 2), frames_per_s=round(fz.sent / wall), frames_sent=fz.sent,
+                   samples_meanwhile=(last.get("last_sample") or {}).get("seq", seq0) - seq0,
+                   counted_equal_sent=lost_at is None, counts_diverged_after=lost_at,
+                   sent_by_reason=dict(fz.want), counted_by_reason=last.get("rejected"),
+                   commands_after_bad_frames=fz.commands_after_bad_frames(), samples_answered_twice=fz.answered_twice(),
+                   lockstep_timeouts=(last.get("loop") or {}).get("lockstep_timeouts"),
+                   state_at_end=last.get("state"))
+        fz.close()
+        # the plant first, and given the time its end takes (metrics over the trace, its log closed): stopped with the
+        # rest, after a long run it was killed before it printed them
+        plant_proc = rig.proc("plant")
+        plant_proc.send_signal(signal.SIGTERM)
+        wait_until(lambda: plant_proc.poll() is not None, 120.0)
+        procs = rig.close()
+    plant = _last_json(procs.get("plant", (None, "", ""))[1])
+    status = json.loads(rig.stats_path.read_text()) if rig.stats_path.exists() else {}
+    daemon_err = procs.get("daemon", (None, "", ""))[2]
+    # a loop thread that died: failed in the final status (it is caught now), or Python's "Exception in thread"
+    out.update(loop_deaths=int(status.get("state") == "failed") + daemon_err.count("Exception in thread"),
+               daemon_exit=procs.get("daemon", (None,))[0], daemon_final_state=status.get("state"),
+               tracebacks={name: se.count("Traceback") for name, (_rc, _so, se) in procs.items()},
+               plant_timeouts=(plant.get("counters") or {}).get("timeouts"),
+               v_max_dev_after_50ms_pct=plant.get("max_dev_after_50ms_pct"), v_ref_V=v_ref,
+               v_equals_offline_run=_equals_offline(scn, rig.plant_out), **_not_stepped(rig.daemon_log()))
+    return out
+
+
+def _not_stepped(log) -> dict:
+    """The daemon log's ticks not stepped on (held: the neighbour's last message older than neighbour_stale_s of wall
+    time, which a starved stack reaches in lockstep too) and its degraded events: what makes a lockstep run differ
+    from the offline one without any bad frame changing a command."""
+    from service.logio.reader import messages
+
+    if log is None:
+        return {}
+    try:
+        return {"ticks_not_stepped": sum(1 for m in messages(str(log), "/z_in") if not m["stepped"]),
+                "degraded_events": sum(1 for e in messages(str(log), "/events") if e["kind"] == "degraded")}
+    except (OSError, ValueError):
+        return {}
+
+
+def _equals_offline(scn, plant_log) -> bool | None:
+    """Whether the plant's v, sample by sample, is the offline run's of the same length to 1e-9 (lockstep over Zenoh
+    reproduces ``energyctl sim``: with no bad frame changing a command, the fuzzed run must too); None without a
+    trace."""
+    import numpy as np
+
+    from service.logio.reader import messages
+    from service.sim import run
+
+    try:
+        v = np.array([m["v"] for m in messages(str(plant_log), "/plant")])
+    except (OSError, ValueError):
+        return None
+    if len(v) == 0:
+        return None
+    sim = run(scn.model_copy(update={"timing": scn.timing.model_copy(
+        update={"duration_s": len(v) / scn.timing.control_rate_hz})})).trace["v"]
+    n = min(len(v), len(sim))
+    return bool(n > 0 and np.allclose(v[:n], sim[:n], rtol=1e-9, atol=0.0))
