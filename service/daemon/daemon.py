@@ -514,8 +514,8 @@ class Daemon(DaemonQueries):
             return None
         seq, t = v[0], v[1]
         restart = seq == 0 and self._last_seq > 0
-        # a seq already passed, whatever its values: no plant waits for its answer, so it gets none (its hold answered
-        # a sample long gone, and a burst of such frames crowded the command key, whose puts drop under congestion)
+        # a seq already passed, whatever its values: no plant waits for its answer, so it gets none (a hold would answer
+        # a sample long gone, one more put on the command key, whose puts drop under congestion: decision 0030)
         if seq <= self._last_seq and not restart:
             self._reject("meas.seq: duplicate or not increasing", now)
             return None
