@@ -51,6 +51,7 @@ from schemas.component import ZenohConfig
 from schemas.messages import json_schema
 from schemas.replies import REPLY_MODELS
 from service.daemon.bus import key, open_session
+from service.daemon.failure import Failure, guarded
 
 # Zenoh leaf -> (the daemon's MCAP topic leaf, schema name, codec)
 STREAMS = {"meas": ("meas", "energyctl.Measurement", MEAS), "cmd": ("cmd", "energyctl.Command", CMD),
@@ -272,6 +273,9 @@ class Bridge(Served):
         self._plock = threading.Lock()
         self._subscribed_params: set[str] = set()
         self._stop = threading.Event()
+        # the graph's or the parameters' thread ended by an unexpected exception: the bridge has failed (its command
+        # exits 1), rather than serve a graph or parameters nobody updates any more
+        self.failure = Failure("energyctl foxglove")
         self._poller: threading.Thread | None = None
         self.counts = {"param_gets": 0, "param_sets": 0, "param_set_errors": 0, "config_reads_failed": 0,
                        "service_calls": 0, "service_errors": 0}
@@ -320,10 +324,10 @@ class Bridge(Served):
             # callback (dropping one at close can deadlock zenoh-python against the GIL)
             self._alive_sub = self.session.liveliness().declare_subscriber(
                 key(self.prefix, "*", "alive"), zenoh.handlers.FifoChannel(256), history=True)
-            self._watcher = threading.Thread(target=self._watch, args=(self._alive_sub.handler,),
-                                             name="foxglove-graph", daemon=True)
+            self._watcher = guarded(self.failure, "foxglove-graph", self._watch, self._alive_sub.handler,
+                                    on_failure=self._stop.set)
             self._watcher.start()
-            self._poller = threading.Thread(target=self._poll, name="foxglove-params", daemon=True)
+            self._poller = guarded(self.failure, "foxglove-params", self._poll, on_failure=self._stop.set)
             self._poller.start()
         except BaseException:
             self.close()
@@ -379,7 +383,8 @@ class Bridge(Served):
             graph = {"live": {c: {"controller": n.controller, "neighbours": list(n.neighbours)}
                               for c, n in sorted(self.nodes.items())},
                      "held": self._hold is not None and not self._hold.lost, **self.graph_counts}
-        return {"port": self.port, "components": self.ids, "rate_hz": self.rate_hz, "channels": channels,
+        return {"state": "failed" if self.failure else "serving", "failure": self.failure.reason,
+                "port": self.port, "components": self.ids, "rate_hz": self.rate_hz, "channels": channels,
                 "received": sum(c["received"] for c in channels.values()),
                 "logged": sum(c["logged"] for c in channels.values()),
                 "dropped": sum(c["dropped"] for c in channels.values()),
@@ -749,10 +754,11 @@ class GraphHold:
                 seen = seen[-64:] + chunk
         except OSError:  # closed
             pass
-        if not self._closing:
-            self.lost = True
-            print("energyctl foxglove: the bridge's own connection-graph subscription ended; opening a new one "
-                  "before the next graph update", file=sys.stderr, flush=True)
+        finally:  # (also after an exception nobody expected: printed, and the bridge opens a new hold)
+            if not self._closing:
+                self.lost = True
+                print("energyctl foxglove: the bridge's own connection-graph subscription ended; opening a new one "
+                      "before the next graph update", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         import socket

@@ -2,7 +2,21 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from pydantic import BaseModel, ConfigDict, Field
+
+# The admissible range of the fields every message shares, here and only here: the codecs (schemas.codec) check
+# every decoded frame against its model's bounds, and the JSON Schemas state them (docs/protocol.md, "Admissible
+# ranges"). A u64 on the wire holds up to 2^64 - 1, more than what reads it can hold: the compiled tick and the core
+# carry seq as a double (exact below 2^53), the daemon's loop-delay history and numpy as int64; so a sequence number or
+# a window index is below 2^53. A time stamp t is a sample time on the plant's clock, s: not negative, and below
+# 2^32 s (136 years), where its nanoseconds still fit the u64 log time of an MCAP record and t still resolves
+# 2^-20 s (1 us, 1 % of a period at 10 kHz); a window index t / T_s then stays below 2^53 for any window above 0.5 us.
+SEQ_LIMIT = 2**53
+T_LIMIT_S = 2.0**32
+Index = Annotated[int, Field(ge=0, lt=SEQ_LIMIT)]
+SampleTime = Annotated[float, Field(ge=0.0, lt=T_LIMIT_S)]
 
 
 class Msg(BaseModel):
@@ -12,9 +26,9 @@ class Msg(BaseModel):
 class Measurement(Msg):
     """One sample from the plant (topic ``.../meas``)."""
 
-    seq: int = Field(ge=0, description="sample sequence number: 0 at the plant's start (0 again: it restarted), "
+    seq: Index = Field(description="sample sequence number: 0 at the plant's start (0 again: it restarted), "
                                        "then one more per sampling period")
-    t: float = Field(description="sample time, s")
+    t: SampleTime = Field(description="sample time, s")
     i: float = Field(description="source-branch current, A")
     v: float = Field(description="terminal voltage, V")
     u: float = Field(description="source voltage, V")
@@ -24,8 +38,8 @@ class Measurement(Msg):
 class Command(Msg):
     """Voltage-rate command answering one measurement (topic ``.../cmd``)."""
 
-    seq: int = Field(ge=0, description="sequence number of the measurement it answers")
-    t: float = Field(description="time of the measurement it answers, s")
+    seq: Index = Field(description="sequence number of the measurement it answers")
+    t: SampleTime = Field(description="time of the measurement it answers, s")
     du_dt: float = Field(description="commanded source voltage rate, V/s")
     du_dt_next: float = Field(default=0.0, description="du/dt planned for the period after this command's, V/s: "
                                                        "what the plant applies there if the next command is missing "
@@ -39,15 +53,15 @@ class Interaction(Msg):
     A neighbour forms its incoming variable as P^{r,in} = -sum_j P_j^{r,out} (paper Eqn PsiMap).
     """
 
-    seq: int = Field(ge=0, description="lockstep pacing: seq of the measurement the message answers (a lockstep "
+    seq: Index = Field(description="lockstep pacing: seq of the measurement the message answers (a lockstep "
                                        "controller waits for it); otherwise a count of the sender's messages")
-    t: float = Field(description="time the rates refer to, s")
+    t: SampleTime = Field(description="time the rates refer to, s")
     P_r_out: float = Field(description="outgoing instantaneous power P^{r,out}, W")
     P_r_out_dot: float = Field(description="its rate dP^{r,out}/dt, W/s")
     Qdot_r_out: float = Field(description="outgoing reactive power rate Qdot^{r,out}, W/s")
     z_out0: float = Field(description="integral of P^{r,out}, J")
     z_out1: float = Field(description="integral of Qdot^{r,out}, W")
-    window: int = Field(ge=0, description="index k of the window [k T_s, (k+1) T_s) the range is for: the current "
+    window: Index = Field(description="index k of the window [k T_s, (k+1) T_s) the range is for: the current "
                                           "one during its first half, the next one during its second half")
     P_min: float = Field(description="lower end of the forecast range of P^{r,out} over the window, W")
     P_max: float = Field(description="upper end of that range, W")
@@ -58,7 +72,7 @@ class Interaction(Msg):
 class Estimate(Msg):
     """Estimator internals and energy-space signals (topic ``.../est``)."""
 
-    t: float = Field(description="sample time of the tick, s")
+    t: SampleTime = Field(description="sample time of the tick, s")
     E: float = Field(description="stored energy, J")
     p: float = Field(description="dE/dt, W")
     E_t: float = Field(description="stored energy in tangent space, J/s^2")
@@ -76,8 +90,8 @@ class Estimate(Msg):
 class TickInput(Msg):
     """What the core was given besides the measurement on one tick (topic ``.../z_in``): enough to replay it."""
 
-    seq: int = Field(ge=0, description="measurement seq of the tick")
-    t: float = Field(description="sample time of the tick, s")
+    seq: Index = Field(description="measurement seq of the tick")
+    t: SampleTime = Field(description="sample time of the tick, s")
     P_r_in: float = Field(description="incoming interaction P^{r,in} = -sum_j P_j^{r,out}, W")
     P_r_in_dot: float = Field(description="its rate, W/s")
     stepped: bool = Field(description="false: the core was not stepped (inactive or no fresh reference), du/dt = 0")
@@ -86,7 +100,7 @@ class TickInput(Msg):
 class LoopRecord(Msg):
     """Loop counters every N ticks (topic ``.../loop``); percentiles are in the status query."""
 
-    t: float = Field(description="sample time of the tick, s")
+    t: SampleTime = Field(description="sample time of the tick, s")
     ticks: int = Field(ge=0, description="ticks since the start")
     overruns: int = Field(ge=0, description="whole periods skipped (clock trigger), since the start")
     no_new_sample: int = Field(ge=0, description="clock ticks that found no new measurement, since the start")
@@ -100,17 +114,17 @@ class Event(Msg):
     """Diagnostics and events (topic ``.../events``): config changes, lifecycle, rejections, recorder drops."""
 
     t: float = Field(description="s (sample time of the tick it belongs to, or monotonic time)")
-    seq: int = Field(ge=0, description="measurement seq the event precedes (config changes apply before it)")
+    seq: Index = Field(description="measurement seq the event precedes (config changes apply before it)")
     kind: str = Field(description="what happened, e.g. config, reject, degraded, plant_restart, neighbour_alive, "
-                                  "neighbour_gone, forecast, recorder_drops")
+                                  "neighbour_gone, forecast, recorder_drops, failed")
     detail: str = Field(description="JSON text (config, forecast, plant_restart, recorder_drops) or plain text "
-                                    "(reject, degraded: the reason; neighbour_alive, neighbour_gone: its id)")
+                                    "(reject, degraded, failed: the reason; neighbour_alive, neighbour_gone: its id)")
 
 
 class Plant(Msg):
     """True plant state in simulation (topic ``.../plant``); not available on real hardware."""
 
-    t: float = Field(description="sample time, s")
+    t: SampleTime = Field(description="sample time, s")
     i: float = Field(description="true source-branch current, A")
     v: float = Field(description="true terminal voltage, V")
     u: float = Field(description="true source voltage, V")
@@ -122,13 +136,13 @@ class Allocation(Msg):
     coordinator): what it is to deliver, its voltage reference, its breaker as the rig reported it, and its
     feasibility range Z^{r,in} for the window."""
 
-    seq: int = Field(ge=0, description="seq of the network sample it answers (a lockstep source waits for it)")
-    t: float = Field(description="time of that sample, s (a source judges its age against its own sample's t)")
+    seq: Index = Field(description="seq of the network sample it answers (a lockstep source waits for it)")
+    t: SampleTime = Field(description="time of that sample, s (a source judges its age against its own sample's t)")
     P_r_in: float = Field(description="P^{r,in} the source is to follow, W (negative: it delivers)")
     P_r_in_dot: float = Field(description="its filtered rate, W/s (a late message is carried forward along it)")
     v_ref_V: float = Field(description="the source's voltage reference, as the layer last moved it, V")
     connected: bool = Field(description="its breaker was closed at that sample")
-    window: int = Field(ge=0, description="the layer's window the range is for")
+    window: Index = Field(description="the layer's window the range is for")
     has_range: bool = Field(description="a range is set for the window (false: the source is not connected)")
     Z_P_min: float = Field(description="Z^{r,in}: lower end of the incoming power range, W")
     Z_P_max: float = Field(description="upper end of the incoming power range, W")
@@ -142,8 +156,8 @@ class GridSample(Msg):
     f64 arrays: each source's measured v and i_out and 1.0/0.0 for its breaker, the buses' measured voltages, the
     loads' true powers (schemas.codec.GRID)."""
 
-    seq: int = Field(ge=0, description="network sample seq")
-    t: float = Field(description="sample time, s")
+    seq: Index = Field(description="network sample seq")
+    t: SampleTime = Field(description="sample time, s")
     v: list[float] = Field(description="each source's measured terminal voltage, V")
     i_out: list[float] = Field(description="each source's measured current into its lines, A")
     connected: list[bool] = Field(description="each source's breaker closed")
@@ -155,8 +169,8 @@ class LayerSource(Msg):
     """What the coordinator saw of one source and answered it, per sample (recorded only, ``.../layer/<source>``):
     enough to replay its allocations."""
 
-    seq: int = Field(ge=0, description="network sample seq")
-    t: float = Field(description="sample time, s")
+    seq: Index = Field(description="network sample seq")
+    t: SampleTime = Field(description="sample time, s")
     v: float = Field(description="the source's measured terminal voltage, V")
     i_out: float = Field(description="its measured current into its lines, A")
     connected: bool = Field(description="its breaker closed")
@@ -168,8 +182,8 @@ class LayerSource(Msg):
 class LayerTick(Msg):
     """The coordinator's per-sample window inputs (recorded only, ``.../layer/tick``)."""
 
-    seq: int = Field(ge=0, description="network sample seq")
-    t: float = Field(description="sample time, s")
+    seq: Index = Field(description="network sample seq")
+    t: SampleTime = Field(description="sample time, s")
     bus_v_mean: float = Field(description="the buses' mean measured voltage, V (0 without buses)")
     load_W: float = Field(description="the loads' total power, W")
     has_buses: bool = Field(description="the network has buses (the window's voltage mean counts this sample)")

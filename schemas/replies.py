@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, RootModel
 from schemas.messages import Command, Measurement
 from schemas.scenario import ControllerConfig
 
-State = Literal["configured", "active", "inactive", "degraded", "shutdown"]
+State = Literal["configured", "active", "inactive", "degraded", "failed", "shutdown"]
 
 
 class Reply(BaseModel):
@@ -181,7 +181,10 @@ class StatusReply(Reply):
     id: str = Field(description="component id")
     version: str = Field(description="energyctl version")
     state: State = Field(description="lifecycle state; degraded: stale measurements, du/dt = 0 held until fresh "
-                                     "ones return")
+                                     "ones return; failed: the loop ended by an unexpected exception (failure), u "
+                                     "held, nothing more published, the process exits 1")
+    failure: str = Field(description="why the state is failed: the thread, the exception and where it was raised; '' "
+                                     "otherwise")
     config_version: int = Field(ge=0, description="run-time config changes applied (config/set)")
     loop: LoopStatus
     last_sample: Measurement | None = Field(description="the last accepted measurement; null before the first")

@@ -22,6 +22,11 @@ v_ref and sets the next window's ranges.
 
 Query handling, JSON and logging stay off the loop thread's per-sample path except for the connect check, which is
 rare and, in lockstep, must happen between two samples.
+
+A bad grid sample or request is rejected, counted and answered; an exception nobody expected, in the loop or in a
+trip's or a liveliness re-check's thread, fails the coordinator (service.daemon.failure): it publishes no more
+allocations (each source falls back to its own terminal once the last one is older than its stale_s), withdraws its
+token, says why on stderr and in status (state failed, failure), and ``energyctl coordinator`` exits 1.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
 from service.core.feasibility import incoming_range
 from service.daemon.bus import answer, key, open_session, publisher, queued, request, serve_queries
+from service.daemon.failure import Failure, guarded
 from service.layer import InterconnectionLayer, judge_announced, offer_staleness
 from service.plant.network import NetworkPlant
 
@@ -88,7 +94,9 @@ class Coordinator:
         self._offers: dict[str, tuple] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self.failure = Failure(f"energyctl coordinator[{cfg.id}]")
         self.session = None
+        self.token = None
         self.recorder = None
         self.log_path = None
 
@@ -161,7 +169,8 @@ class Coordinator:
             self.recorder.close()
         if self.session is not None:
             try:
-                self.token.undeclare()
+                if self.token is not None:
+                    self.token.undeclare()
             except Exception:  # noqa: BLE001 - closing anyway
                 pass
             self.session.close()
@@ -174,23 +183,41 @@ class Coordinator:
 
     # ---------------------------------------------------------------- the loop
     def run(self, max_samples: int | None = None) -> None:
+        """The loop thread: grid samples and connect requests until stop; an unexpected exception (or another
+        thread's failure, which stops it) ends it in the safe state (the module docstring)."""
+        try:
+            self._loop(max_samples)
+        except Exception as e:  # noqa: BLE001 - the layer in an unknown state: it fails, visibly
+            self.failure.record("loop", e)
+        finally:
+            if self.failure:
+                self._safe_state()
+
+    def _loop(self, max_samples: int | None) -> None:
         q, stop = self.grid_q, self._stop
         while not stop.is_set():
+            self._poll_alive()
+            self._take_connects()
             try:
-                self._poll_alive()
-                self._take_connects()
-                try:
-                    _, payload = q.get(timeout=0.005)
-                except Empty:
-                    continue
-                self.grid(payload)
-                self._take_connects()
-            except Exception as e:  # noqa: BLE001 - one bad sample or request must not end the layer
-                self._reject(f"internal: {type(e).__name__}: {e}")
-                print(f"energyctl coordinator: {type(e).__name__}: {e} (counted; going on)", file=sys.stderr,
-                      flush=True)
+                _, payload = q.get(timeout=0.005)
+            except Empty:
+                continue
+            self.grid(payload)
+            self._take_connects()
             if max_samples is not None and self.counters["grid_samples"] >= max_samples:
                 break
+
+    def _safe_state(self) -> None:
+        """No allocation after the failure (the loop has ended): the sources fall back to their own terminals; the
+        token withdrawn, so that they (and an operator) see the coordinator gone at once."""
+        self._stop.set()
+        try:
+            if self.token is not None:
+                self.token.undeclare()
+                self.token = None
+        except Exception:  # noqa: BLE001 - a closed session: nothing more to withdraw
+            pass
+        self._event(self.t, self.seq, "failed", {"failure": self.failure.reason})
 
     def grid(self, payload: bytes) -> None:
         """One grid sample: allocate, publish, record, and close the window if it ends here."""
@@ -409,7 +436,7 @@ class Coordinator:
                 return
             self._alive_checked.put(up)
 
-        threading.Thread(target=ask, name="recheck-alive", daemon=True).start()
+        guarded(self.failure, "recheck-alive", ask, on_failure=self.stop).start()
 
     def _trip(self, name: str) -> None:
         """Its daemon is gone: the rig opens its breaker (a thread: the loop keeps allocating meanwhile)."""
@@ -434,7 +461,7 @@ class Coordinator:
             print(f"energyctl coordinator: {name} lost its liveliness at t = {t:.4f} s: tripped ({how})",
                   file=sys.stderr, flush=True)
 
-        threading.Thread(target=ask, name=f"trip-{name}", daemon=True).start()
+        guarded(self.failure, f"trip-{name}", ask, on_failure=self.stop).start()
 
     # ---------------------------------------------------------------- queries (their own threads)
     def _serve(self, leaf: str) -> None:
@@ -470,7 +497,8 @@ class Coordinator:
         layer, net, zin, connected = self.layer, self.net, list(self.zin), list(self.connected)
         weight = sum(sh for sh, c in zip(layer.shares, connected, strict=True) if c) or 1.0
         return {
-            "id": self.cfg.id, "network": net.name, "seq": self.seq, "t": self.t, "window": self.window,
+            "id": self.cfg.id, "state": "failed" if self.failure else "active", "failure": self.failure.reason,
+            "network": net.name, "seq": self.seq, "t": self.t, "window": self.window,
             "window_s": net.layer.window_s, "mode": net.layer.mode, "loss_frac": layer.loss_frac,
             "sources": {name: {"share": layer.shares[j], "share_now": layer.shares[j] / weight if connected[j]
                                else 0.0, "connected": connected[j], "alive": self.alive[name],
@@ -524,7 +552,7 @@ def announced_z_out(body: dict) -> tuple[tuple[float, float], tuple[float, float
 
 def run_coordinator(cfg: CoordinatorConfig, net: NetworkScenario, stop: threading.Event, impl: str = "auto",
                     log=sys.stderr) -> dict:
-    """Open, run until stop, close; the final status."""
+    """Open, run until stop (or until the loop ends by itself: a failure), close; the final status."""
     co = Coordinator(cfg, net, impl)
     co.open()
     loop = threading.Thread(target=co.run, name="loop", daemon=True)
@@ -535,6 +563,9 @@ def run_coordinator(cfg: CoordinatorConfig, net: NetworkScenario, stop: threadin
     while not stop.is_set() and loop.is_alive():
         stop.wait(0.05)
     died = not stop.is_set()  # the loop ended by itself: a failure, whatever the status says
+    if died:
+        print(f"energyctl coordinator: {cfg.id} failed, no more allocations: "
+              f"{co.failure.reason or 'its loop ended by itself'}", file=log, flush=True)
     co.stop()
     loop.join(timeout=6.0)  # a plug-in check under way asks the rig with a 5 s timeout
     status = co.status()

@@ -80,6 +80,20 @@ def daemon_by_hand():
         d.close()
 
 
+class RingStub:
+    """A Zenoh ring channel's stand-in (a neighbour's subscriber, polled by the loop with try_recv): hands out the
+    given payloads one per call, oldest first, then None."""
+
+    def __init__(self, payloads):
+        self.items = list(payloads)
+
+    def try_recv(self):
+        if not self.items:
+            return None
+        b = self.items.pop(0)
+        return type("Sample", (), {"payload": type("Payload", (), {"to_bytes": lambda self: b})()})()
+
+
 class QueryStub:
     """A Zenoh query's stand-in for code that answers queries: keeps the one answer (("ok" | "err", JSON body)),
     the key it was given on, and whether it was dropped; ``n`` tells stubs apart."""

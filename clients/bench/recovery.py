@@ -104,14 +104,19 @@ class Rig:
         self.close()
 
     # ---------------------------------------------------------------- observing
-    def status(self, timeout_s: float = 1.0) -> dict | None:
-        """The controller's status, or None if it does not answer (one Zenoh session for the rig's life)."""
-        try:
-            if self._session is None:
-                from service.daemon.bus import open_session
+    def session(self):
+        """The rig's own Zenoh session on the stack's endpoint (one for the rig's life): queries, and whatever a test
+        or a bench publishes or subscribes to beside the stack."""
+        if self._session is None:
+            from service.daemon.bus import open_session
 
-                self._session = open_session(self._zq)
-            return ask(self._session, "energyctl", "source", "status", timeout_s=timeout_s)
+            self._session = open_session(self._zq)
+        return self._session
+
+    def status(self, timeout_s: float = 1.0) -> dict | None:
+        """The controller's status, or None if it does not answer."""
+        try:
+            return ask(self.session(), "energyctl", "source", "status", timeout_s=timeout_s)
         except (QueryError, ConnectionError):
             return None
 

@@ -140,6 +140,12 @@ def _network_live(args: argparse.Namespace) -> dict:
                               progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
 
 
+def _fuzz(args: argparse.Namespace) -> dict:
+    from clients.bench.fuzz import bench_fuzz
+
+    return bench_fuzz(frames=args.n or 100_000, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+
+
 class Bench(NamedTuple):
     run: Callable[[argparse.Namespace], dict]
     what: str  # what it measures, for --help
@@ -169,6 +175,10 @@ BENCHES: dict[str, Bench] = {
                                          "with SIGKILL and the coordinator lost and restarted (--realtime: at 1 kHz, "
                                          "and the highest of --rates at which two-source regulates, with each "
                                          "process's CPU; default rates 1000,1500,2000,3000, --seconds each)"),
+    "fuzz": Bench(_fuzz, "bad measurement frames (bit flips, boundary values, NaN and inf, cuts) put between the "
+                         "samples of the paper's stack in lockstep at 10 kHz: frames counted against sent by reason, "
+                         "loop deaths, tracebacks, commands after a bad frame, v's deviation from v_ref (-n frames, "
+                         "default 100000)"),
     "middleware": Bench(_middleware, "the Zenoh and MCAP facts the daemon's design rests on, re-measured: put cost, "
                                      "one-way and round-trip latency, callback vs polled receive, query round trip, "
                                      "liveliness loss after kill -9, CPU per message, encoding cost, MCAP writes"),
@@ -199,7 +209,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "run (default 2); network: simulated time per size (default 0.2)")
     b.add_argument("-n", type=int, default=None,
                    help="latency: round trips per target (default 3000); tick: ticks (default 20000); wake: waits "
-                        "per setting (default 20000); middleware: puts and pings (default 3000)")
+                        "per setting (default 20000); middleware: puts and pings (default 3000); fuzz: bad frames "
+                        "(default 100000)")
     b.add_argument("--wait", choices=["block", "spin"], default=None,
                    help="latency, realtime: the daemon's wait for samples (default: block)")
     b.add_argument("--runs", type=int, default=1, metavar="N",

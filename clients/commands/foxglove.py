@@ -98,7 +98,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _serve(server, args: argparse.Namespace, stop, refused: tuple, what) -> int:
     """Start the bridge or the player, serve until SIGINT/SIGTERM, print its status JSON. refused: the errors
-    that mean its input was wrong (exit 2, as a port that is taken does)."""
+    that mean its input was wrong (exit 2, as a port that is taken does). A bridge whose thread failed stops and
+    exits 1."""
+    from service.daemon.failure import EXIT_FAILED
+
     try:
         server.start()
     except refused as e:
@@ -110,10 +113,15 @@ def _serve(server, args: argparse.Namespace, stop, refused: tuple, what) -> int:
     try:
         print(f"energyctl foxglove: {what()} on ws://{args.host}:{server.port} (in the Foxglove app: open "
               f"connection, Foxglove WebSocket; or {server.app_url()})", file=sys.stderr, flush=True)
+        failure = getattr(server, "failure", None)  # the bridge's (service.daemon.failure): a thread of it ended
         while not stop.wait(0.5):
-            pass
+            if failure:
+                break
     finally:
         status = server.status()
         server.close()
     print(json.dumps(status))
+    if failure:
+        print(f"energyctl foxglove: failed: {failure.reason}", file=sys.stderr, flush=True)
+        return EXIT_FAILED
     return 0

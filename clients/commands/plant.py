@@ -104,4 +104,9 @@ def run_network_rig(args: argparse.Namespace) -> int:
 
         print(network_tables(res["metrics"]), flush=True)
         print("counters: " + ", ".join(f"{k} {v}" for k, v in res["counters"].items()), flush=True)
+    if res["failure"]:
+        from service.daemon.failure import EXIT_FAILED
+
+        print(f"energyctl plant: failed, sampling stopped: {res['failure']}", file=sys.stderr, flush=True)
+        return EXIT_FAILED
     return 0

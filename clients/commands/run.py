@@ -18,7 +18,9 @@ for the sample's period and the plan for the one after) and its own interaction 
 the liveliness token PREFIX/ID/alive and answers queries (energyctl query) on PREFIX/ID/status (state, loop \
 statistics, last sample and command, estimates, feasibility, neighbours, rejections), PREFIX/ID/config (get) and \
 PREFIX/ID/config/set (a JSON {"set": ["controller.K_per_s=800", "lifecycle=inactive"]}; applied at the next tick). \
-SIGINT/SIGTERM stop it within one period; it prints its loop statistics as JSON."""
+SIGINT/SIGTERM stop it within one period; it prints its loop statistics as JSON. Should its loop end by an \
+unexpected exception, it holds u, publishes nothing more, withdraws its token, says why on stderr (and in the final \
+status: state failed, failure) and exits 1."""
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -78,9 +80,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_daemon(cfg, stats_out: str | None = None) -> int:
-    """Open the daemon, run its loop thread until SIGINT/SIGTERM (or the loop ends), print its statistics."""
+    """Open the daemon, run its loop thread until SIGINT/SIGTERM (or the loop ends), print its statistics; exit 1 if
+    the loop failed (service.daemon.failure)."""
     from clients.live import start_process
     from service.daemon.daemon import Daemon
+    from service.daemon.failure import EXIT_FAILED
     from service.daemon.netsource import NetworkSourceDaemon
 
     stop = start_process(cfg, "run")
@@ -106,5 +110,9 @@ def run_daemon(cfg, stats_out: str | None = None) -> int:
     status = d.status()
     if stats_out:
         Path(stats_out).write_text(json.dumps(status))
-    print(json.dumps({"id": cfg.id, "loop": status["loop"], "rejected": status["rejected"]}), flush=True)
+    print(json.dumps({"id": cfg.id, "loop": status["loop"], "rejected": status["rejected"],
+                      "state": status["state"], "failure": status["failure"]}), flush=True)
+    if d.failure:
+        print(f"energyctl run: {cfg.id} failed, control stopped: {d.failure.reason}", file=sys.stderr, flush=True)
+        return EXIT_FAILED
     return 0

@@ -15,11 +15,16 @@ from service.daemon.bus import key, latest, open_session, publisher, queued
 from service.plant.profiles import Profile
 
 
-def _plant_clock(payload: bytes) -> tuple[int, float] | None:
-    """(seq, t) of a plant sample; None for a payload that is not one."""
+def _plant_clock(payload: bytes, last: tuple[int, float] | None) -> tuple[int, float] | None:
+    """(seq, t) of the plant's next sample after ``last`` (the previous one followed, or None): later in seq and in
+    t, or seq 0 (the plant restarted); None for a payload that is not a measurement, or one that is not the plant's
+    next (a duplicate, a stray or corrupted frame on its key: the controller rejects those, and a lockstep load that
+    answered them sent it z messages of a stale seq and time, which it then waited for)."""
     try:
         v = MEAS.decode(payload)
     except DecodeError:
+        return None
+    if last is not None and v[0] != 0 and (v[0] <= last[0] or v[1] <= last[1]):
         return None
     return v[0], v[1]
 
@@ -101,17 +106,17 @@ class LoadPeer:
             t_start = time.monotonic()
             period = 1.0 / cfg.rate_hz
             nxt = time.monotonic()
-            t_plant, seq_plant = None, 0
+            plant = None  # (seq, t) of the plant's sample followed last
             while not stop.is_set() and time.monotonic() - t_start < cfg.duration_s:
                 if lockstep:  # wait for the next sample
                     try:
                         m = meas_q.get(timeout=0.05)[1] if meas_q is not None else None
                     except Empty:
                         m = None
-                    if m is None or (v := _plant_clock(m)) is None:
+                    if m is None or (v := _plant_clock(m, plant)) is None:
                         continue
-                    seq_plant, t_plant = v
-                    seq, t = seq_plant, t_plant
+                    plant = v
+                    seq, t = plant
                 else:
                     now = time.monotonic()
                     if now < nxt:
@@ -119,11 +124,11 @@ class LoadPeer:
                         continue
                     nxt += period
                     if sub is not None and (s := sub.try_recv()) is not None and \
-                            (v := _plant_clock(s.payload.to_bytes())) is not None:  # the newest sample, if any
-                        seq_plant, t_plant = v
-                    if sub is not None and t_plant is None:
+                            (v := _plant_clock(s.payload.to_bytes(), plant)) is not None:  # the newest sample, if any
+                        plant = v
+                    if sub is not None and plant is None:
                         continue  # follow the plant's clock once it runs
-                    seq, t = self.sent, (t_plant if t_plant is not None else now - t_start)
+                    seq, t = self.sent, (plant[1] if plant is not None else now - t_start)
                 self.publish(seq, t)
             cpu.stop()
             token.undeclare()

@@ -12,6 +12,10 @@ takes each source's command from PREFIX/SOURCE/cmd and breaker commands from the
 * realtime: samples on the wall clock; the command answering sample k acts over period k + d (d the scenario's
   loop delay), else its predecessor's plan, else u is held.
 
+Should its sampling or its breaker thread end by an exception nobody expected, it stops sampling (the daemons see
+their measurements stop and hold), reports ``state: failed`` with the reason (service.daemon.failure), still writes
+its log, and ``energyctl plant`` exits 1.
+
 At the end it writes its log (``out``) in the layout of ``energyctl sim NETWORK --out`` for the plant: each source's,
 bus's and line's true state under PREFIX/NETWORK/ELEMENT/plant, the breaker events under PREFIX/NETWORK/layer/events,
 the scenario and the metrics as metadata; ``energyctl report`` draws it and ``network_metrics`` recomputes from it.
@@ -35,6 +39,7 @@ from schemas.codec import CMD, GRID, MEAS, DecodeError, Z
 from schemas.netlive import NetworkRigConfig
 from schemas.network import NetworkScenario
 from service.daemon.bus import key, open_session, publisher, queued
+from service.daemon.failure import Failure, guarded
 from service.netrig import NetworkRigModel
 from service.netsim import Event, NetworkResult, acceptance_checks, network_metrics
 
@@ -60,6 +65,7 @@ class NetworkRig:
         self.lagging: set[str] = set()
         self.answered = {name: -1 for name in self.names}
         self.diverged_at: float | None = None
+        self.failure = Failure(f"energyctl plant[{cfg.id}]")
         self.cpu = None
         ns, nb, nl = len(self.names), len(net.buses), len(net.lines)
         self._rows = array("d")  # per tick: t, per source (i, v, u, i_out, P, du_dt), per bus v, per line i
@@ -70,7 +76,10 @@ class NetworkRig:
         session = open_session(self.cfg.zenoh)
         try:
             self.connect(session)
-            self.sample()
+            try:
+                self.sample()
+            except Exception as e:  # noqa: BLE001 - the run ends here, visibly, with what it has (result)
+                self.failure.record("sample", e)
         finally:
             session.close()
         return self.result()
@@ -87,7 +96,7 @@ class NetworkRig:
         self.alive_sub = session.liveliness().declare_subscriber(key(p, "*", "alive"), zenoh.handlers.FifoChannel(256),
                                                                  history=True)
         self.breaker_q = session.declare_queryable(key(p, cfg.id, "breaker"), zenoh.handlers.FifoChannel(64))
-        self._breaker_thread = threading.Thread(target=self._serve_breaker, name="breaker", daemon=True)
+        self._breaker_thread = guarded(self.failure, "breaker", self._serve_breaker)  # its failure ends the sampling
         self._breaker_thread.start()
         self.token = session.liveliness().declare_token(key(p, cfg.id, "alive"))
         wait = [*cfg.wait_for, *[n for n, s in net.sources.items() if s.connected or self._asks(n)]]
@@ -119,7 +128,7 @@ class NetworkRig:
         t_wall0 = time.perf_counter()
         next_ns = now_ns() + period_ns
         for k in range(N):
-            if stop.is_set():
+            if stop.is_set() or self.failure:
                 break
             if not self.lockstep:
                 left = next_ns - now_ns()
@@ -323,7 +332,8 @@ class NetworkRig:
         for name, sched in zip(self.names, self.model.scheds, strict=True):  # late, planned and held periods
             for k, v in sched.counts.items():
                 self.counters[f"{name}_{k}"] = v
-        out = {"metrics": res.metrics, "counters": dict(self.counters), "pacing": self.cfg.pacing,
+        out = {"state": "failed" if self.failure else "done", "failure": self.failure.reason,
+               "metrics": res.metrics, "counters": dict(self.counters), "pacing": self.cfg.pacing,
                "command_age": {s: age_summary(h, self.model.d) for s, h in self.age_hist.items() if sum(h)},
                "control_rate_hz": self.net.timing.control_rate_hz, "samples": n,
                "wall_s": getattr(self, "wall_s", None),

@@ -9,7 +9,9 @@ Threads:
 * the main thread waits for SIGINT/SIGTERM and shuts down within one period.
 
 Lifecycle: configured -> active <-> inactive (du/dt = 0 is published) -> shutdown; active -> degraded
-(stale measurements: du/dt = 0) -> active by itself when fresh measurements return.
+(stale measurements: du/dt = 0) -> active by itself when fresh measurements return; any -> failed when the loop
+thread (or the forecast worker's thread) ends by an unexpected exception: u held, nothing more published, the token
+withdrawn, the reason in status and on stderr, and ``energyctl run`` exits 1 (service.daemon.failure).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from service.core import core_metadata, effective_gain, make_core
 from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from service.core.interaction import outgoing_power_at as _outgoing_power_at
 from service.daemon.bus import key, latest, open_session, publisher, queued, serve_queries
+from service.daemon.failure import Failure
 from service.daemon.forecast_worker import ForecastWorker
 from service.daemon.loop_stats import HIST, LoopStats
 from service.daemon.neighbours import Neighbour
@@ -57,6 +60,7 @@ class Daemon(DaemonQueries):
         self.core = make_core(cfg.controller, cfg.model, self.period_s, cfg.delay_samples, cfg.core)
         self.stats = LoopStats(cfg.loop.stats_window)
         self.state = "configured"
+        self.failure = Failure(f"energyctl[{cfg.id}]")  # the loop's (or the forecast thread's) unexpected end
         self.log_error = ""  # the recorder could not even start
         self.alive_sub = None
         self.rejected: dict[str, int] = {}
@@ -131,7 +135,8 @@ class Daemon(DaemonQueries):
         self._fast = self._tick_writer()
         if c.forecast.enabled and self.neighbours:  # a worker process: started (and imported) before the loop runs
             self.forecaster = ForecastWorker(c.model, self.period_s, self.core.d, c.forecast, c.forecast_window_s,
-                                             on_result=self._forecast_done, impl=c.core)
+                                             on_result=self._forecast_done, impl=c.core, failure=self.failure,
+                                             on_failure=self._stop.set)
             self.forecaster.start()
         self._threads = [threading.Thread(target=serve_queries, name=leaf, daemon=True,
                                           args=(self.queryables[leaf], key(c.prefix, c.id, leaf), fn))
@@ -196,12 +201,17 @@ class Daemon(DaemonQueries):
 
         ring = self.recorder.ring_args(0) if self.recorder is not None else {}
         c = self.cfg
+        ranges = MEAS.half_open_ranges()  # accept admits what decode admits: seq in [0, 2^53), t in [0, 2^32)
+        if set(ranges) != {"seq", "t"} or ranges["seq"][0] != 0:
+            raise ValueError(f"TickWriter.accept checks seq < a limit and t in a range; the codec checks {ranges}")
+        seq, t = ranges["seq"], ranges["t"]
         return TickWriter(k, self._hist_seq, self._hist_u, self._hist_r, CMD.struct.format, CMD.magic, VERSION,
                           **ring, meas_format=MEAS.struct.format, meas_magic=MEAS.magic, v_min=c.meas_v_min_V,
-                          v_max=c.meas_v_max_V, i_max=c.meas_i_max_A)
+                          v_max=c.meas_v_max_V, i_max=c.meas_i_max_A, seq_limit=seq[1], t_min=t[0], t_limit=t[1])
 
     def close(self) -> None:
-        self.state = "shutdown"
+        if not self.failure:
+            self.state = "shutdown"
         if getattr(self, "_fast", None) is not None:
             self._fast.close()  # its view of the recorder's ring goes before the ring does
             self._fast = None
@@ -239,8 +249,30 @@ class Daemon(DaemonQueries):
                 self._clock_loop(max_ticks)
             else:
                 self._sample_loop(max_ticks)
+        except Exception as e:  # noqa: BLE001 - whatever ends the loop: the component fails, visibly (_safe_state)
+            self.failure.record("loop", e)
         finally:
             gc.unfreeze()
+            if self.failure:
+                self._safe_state()
+
+    def _safe_state(self) -> None:
+        """After a failure (the loop's own, or another thread's that stopped it): hold u (one hold for the last sample
+        answered, as a degrade does: a plant waiting for that answer applies du/dt = 0, and without commands it holds
+        u after the last plan), publish nothing more (the loop has ended), withdraw the liveliness token (a plant, a
+        coordinator, a supervisor sees the controller gone), and say so in status, the log and the events."""
+        self.state = "failed"
+        ls = self.last_sample
+        for step in (lambda: ls is not None and self.cmd_pub.put(CMD.encode(ls[0], ls[1], 0.0, 0.0, True)),
+                     lambda: self.token is not None and self.token.undeclare(),
+                     lambda: self.recorder is not None and self.recorder.offer(
+                         self.t_ev, ls[1] if ls else 0.0, (ls[1] if ls else 0.0, max(self._last_seq, 0), "failed",
+                                                           self.failure.reason))):
+            try:
+                step()
+            except Exception:  # noqa: BLE001 - each step on its own: one that fails does not skip the others
+                pass
+        self.token = None
 
     def _clock_loop(self, max_ticks: int | None) -> None:
         period = int(round(self.period_s * 1e9))
@@ -326,30 +358,38 @@ class Daemon(DaemonQueries):
                 while q.qsize() >= catch_up:  # keep the newest catch_up; this one first, the rest next round
                     item = q.get_nowait()
                 payload = item[1]
-            start = now_ns()
+            start = t_exec = now_ns()
             if lockstep and self.neighbours:
-                seq = int.from_bytes(payload[2:10], "little")
-                deadline = start + timeout_ns
-                nbs = self.neighbours
-                while any(nb.seq < seq and nb.alive is not False and not nb.lagging for nb in nbs) \
-                        and not stop.is_set():
-                    self._poll_neighbours(now_ns())
-                    if now_ns() > deadline:  # a hung neighbour stalls one tick, not every tick
-                        stats.lockstep_timeouts += 1
-                        for nb in nbs:
-                            nb.lagging = nb.lagging or nb.seq < seq
-                        break
-                    time.sleep(20e-6)
-                for nb in nbs:  # keeping pace again (it answered the previous sample): wait for it from now on
-                    if nb.lagging and nb.seq >= seq - 1:
-                        nb.lagging = False
-            t_exec = now_ns()
-            self._tick(payload, t_exec)
+                # the sample is checked first; only one the core will step on waits for the neighbours' messages of
+                # its seq: a frame rejected or held (malformed, out of range, a duplicate seq: none of them uses
+                # P^{r,in}) is answered at once and never stalls the loop
+                if (v := self._sample(payload, start)) is not None:
+                    self._await_neighbours(v[0], start + timeout_ns)
+                    t_exec = now_ns()
+                    self._step(v, t_exec)
+            else:
+                self._tick(payload, t_exec)
             end = now_ns()
             stats.record(start - prev if prev else 0, end - t_exec, self.put_ns, self.control_ns)
             prev = start
             if max_ticks is not None and stats.ticks >= max_ticks:
                 break
+
+    def _await_neighbours(self, seq: int, deadline: int) -> None:
+        """Lockstep: poll until every neighbour's newest message is for ``seq`` or later (not one whose token is gone
+        nor one lagging), or the deadline (ns) passes: then count the timeout and mark the ones behind lagging."""
+        nbs, now_ns, stop = self.neighbours, time.monotonic_ns, self._stop
+        while any(nb.seq < seq and nb.alive is not False and not nb.lagging for nb in nbs) and not stop.is_set():
+            self._poll_neighbours(now_ns())
+            if now_ns() > deadline:  # a hung neighbour stalls one tick, not every tick
+                self.stats.lockstep_timeouts += 1
+                for nb in nbs:
+                    nb.lagging = nb.lagging or nb.seq < seq
+                break
+            time.sleep(20e-6)
+        for nb in nbs:  # keeping pace again (it answered the previous sample): wait for it from now on
+            if nb.lagging and nb.seq >= seq - 1:
+                nb.lagging = False
 
     def _reject(self, reason: str, now: int, detail: str = "") -> None:
         """Count by reason class (bounded keys); keep the detail of the last one; record it as a diagnostics
@@ -465,14 +505,20 @@ class Daemon(DaemonQueries):
 
     def _checked(self, payload: bytes, now: int) -> tuple | None:
         """The measurement's values if it is the next sample to step on (a restart re-initialises the core first);
-        else None, after rejecting it (counted, named; malformed, a duplicate seq) or holding it (answered with
-        du/dt = 0: out of range, time not advancing)."""
+        else None, after rejecting it (counted, named; malformed, a seq already passed: no answer) or holding it
+        (answered with du/dt = 0: out of range, time not advancing)."""
         try:
             v = MEAS.decode(payload)
         except DecodeError as e:
             self._reject(f"meas.{e.field}: invalid", now, e.reason)
             return None
         seq, t = v[0], v[1]
+        restart = seq == 0 and self._last_seq > 0
+        # a seq already passed, whatever its values: no plant waits for its answer, so it gets none (a hold would answer
+        # a sample long gone, one more put on the command key, whose puts drop under congestion: decision 0030)
+        if seq <= self._last_seq and not restart:
+            self._reject("meas.seq: duplicate or not increasing", now)
+            return None
         c = self.cfg
         if not c.meas_v_min_V <= v[3] <= c.meas_v_max_V:
             return self._hold(v, now, "meas.v: out of range",
@@ -480,29 +526,40 @@ class Daemon(DaemonQueries):
         if abs(v[2]) > c.meas_i_max_A or abs(v[5]) > c.meas_i_max_A:
             field = "i" if abs(v[2]) > c.meas_i_max_A else "i_load"
             return self._hold(v, now, f"meas.{field}: out of range", f"beyond ±{c.meas_i_max_A:g} A")
-        if seq == 0 and self._last_seq > 0:  # the plant restarted: its history is not ours any more
+        if restart:  # the plant restarted: its history is not ours any more
             self.core.reset()
             self._last_seq = -1
             self.restarts += 1
             if self.recorder is not None:
                 self.recorder.offer(self.t_ev, t, (t, 0, "plant_restart", "{}"))
-        if seq <= self._last_seq:
-            self._reject("meas.seq: duplicate or not increasing", now)
-            return None
         if self.last_sample is not None and self._last_seq >= 0 and t <= self.last_sample[1]:
             return self._hold(v, now, "meas.t: not after the previous sample")
         return v
 
     def _tick(self, payload: bytes, now: int) -> None:
+        """One measurement: checked (_sample), then stepped on and answered (_step) if it is the next sample."""
+        if (v := self._sample(payload, now)) is not None:
+            self._step(v, now)
+
+    def _sample(self, payload: bytes, now: int) -> tuple | None:
+        """The tick's first half: the neighbours polled, the measurement's values if the core is to step on it; else
+        None, the payload rejected or held (_checked)."""
         self.put_ns = self.control_ns = 0
         self._poll_neighbours(now)
         fast = self._fast
         # an ordinary next sample passes the compiled check (TickWriter.accept, the same conditions as _checked);
         # anything else goes through _checked, which names and counts what it refuses
-        ls = self.last_sample
-        v = fast.accept(payload, self._last_seq, ls[1] if ls else 0.0) if fast is not None else None
-        if v is None and (v := self._checked(payload, now)) is None:
-            return
+        if fast is not None:
+            ls = self.last_sample
+            v = fast.accept(payload, self._last_seq, ls[1] if ls else 0.0)
+            if v is not None:
+                return v
+        return self._checked(payload, now)
+
+    def _step(self, v: tuple, now: int) -> None:
+        """The tick's second half, for the sample v (_sample's): P^{r,in} from the neighbours, the core's step, the
+        command, the record; ``now``: the loop's clock (ns) for the neighbours' freshness."""
+        fast = self._fast
         t_control = _now_ns()
         seq, t = v[0], v[1]
         self._take_sample(v)

@@ -33,9 +33,13 @@ class ForecastWorker:
     CACHE = 64
 
     def __init__(self, model: CircuitParams, period_s: float, delay_samples: int, cfg, window_s: float,
-                 quantum: float = 0.02, on_result=None, impl: str = "auto"):
-        """impl: the core's implementation the forecast's closed loops run (service.core.make_core)."""
+                 quantum: float = 0.02, on_result=None, impl: str = "auto", failure=None, on_failure=None):
+        """impl: the core's implementation the forecast's closed loops run (service.core.make_core). failure,
+        on_failure: the component's (service.daemon.failure.Failure) and what takes it to its safe state, should this
+        thread end by an unexpected exception (without them it is only printed)."""
         import threading
+
+        from service.daemon.failure import Failure, guarded
 
         self.model, self.period_s, self.delay_samples = model, period_s, delay_samples
         self.impl = impl
@@ -50,7 +54,8 @@ class ForecastWorker:
         self._ev = threading.Event()
         self._stop = False
         self._pool = None
-        self._thread = threading.Thread(target=self._run, name="forecast", daemon=True)
+        self._thread = guarded(failure if failure is not None else Failure("energyctl forecast"), "forecast",
+                               self._run, on_failure=on_failure)
 
     def start(self) -> None:
         """Start the worker process and wait until it has imported everything (about 1 s of CPU: better before
@@ -94,48 +99,53 @@ class ForecastWorker:
         return out
 
     def _run(self) -> None:
-        import time
-
-        from service.core.control import effective_gain
-        from service.core.feasibility import tau_prime
-
         leave_realtime()  # a new worker after a broken one is spawned from this thread: not at the loop's FIFO
-
         while not self._stop:
             self._ev.wait()
             self._ev.clear()
             req, self._req = self._req, None
             if self._stop or req is None:
                 continue
-            w, box, ctl, version = req
-            wide = widen_to_grid(box, self.quantum)
-            key = (wide, version)
-            tau_p = tau_prime(self.model.L_H, self.model.R_ohm, effective_gain(ctl, self.model))
-            f = self._cache.get(key)
-            if f is not None:
-                self.cache_hits += 1
-            else:
-                c = self.cfg
-                t0 = time.perf_counter()
+            try:
+                self._answer(*req)
+            except (ArithmeticError, ValueError) as e:  # a box of finite values beyond the forecast's arithmetic
+                self.errors += 1  # (widening 1e308 overflows 2^1024): nobody can forecast it; counted, said
+                self.last_error = f"window {req[0]}: box {req[1]}: {type(e).__name__}: {e}"
+
+    def _answer(self, w: int, box: tuple, ctl: ControllerConfig, version: int) -> None:
+        import time
+
+        from service.core.control import effective_gain
+        from service.core.feasibility import tau_prime
+
+        wide = widen_to_grid(box, self.quantum)
+        key = (wide, version)
+        tau_p = tau_prime(self.model.L_H, self.model.R_ohm, effective_gain(ctl, self.model))
+        f = self._cache.get(key)
+        if f is not None:
+            self.cache_hits += 1
+        else:
+            c = self.cfg
+            t0 = time.perf_counter()
+            try:
+                f = self._pool.submit(forecast_outgoing, ctl, self.model, self.period_s, self.delay_samples, wide,
+                                      tau_p, steps=c.load_steps, settle_s=c.settle_s,
+                                      max_ramp_s=self.window_s, impl=self.impl).result(timeout=60)
+            except Exception as e:  # noqa: BLE001 - a broken worker: count, say, start a new one next time
+                self.errors += 1
+                self.last_error = f"{type(e).__name__}: {e}"
                 try:
-                    f = self._pool.submit(forecast_outgoing, ctl, self.model, self.period_s, self.delay_samples, wide,
-                                          tau_p, steps=c.load_steps, settle_s=c.settle_s,
-                                          max_ramp_s=self.window_s, impl=self.impl).result(timeout=60)
-                except Exception as e:  # noqa: BLE001 - a broken worker: count, say, start a new one next time
-                    self.errors += 1
-                    self.last_error = f"{type(e).__name__}: {e}"
-                    try:
-                        self._pool.shutdown(wait=False, cancel_futures=True)
-                    finally:
-                        self._pool = self._new_pool()
-                    continue
-                self.last_ms = (time.perf_counter() - t0) * 1e3
-                self.computed += 1
-                if len(self._cache) >= self.CACHE:
-                    self._cache.pop(next(iter(self._cache)))
-                self._cache[key] = f
-            f = f.for_box(box, tau_p)
-            self.infeasible += not f.feasible
-            self.result = (w, f)
-            if self.on_result is not None:
-                self.on_result(w, f)
+                    self._pool.shutdown(wait=False, cancel_futures=True)
+                finally:
+                    self._pool = self._new_pool()
+                return
+            self.last_ms = (time.perf_counter() - t0) * 1e3
+            self.computed += 1
+            if len(self._cache) >= self.CACHE:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = f
+        f = f.for_box(box, tau_p)
+        self.infeasible += not f.feasible
+        self.result = (w, f)
+        if self.on_result is not None:
+            self.on_result(w, f)

@@ -149,12 +149,9 @@ class NetworkSourceDaemon(Daemon):
         self._seen_restarts = self.restarts
 
     # ---------------------------------------------------------------- the tick
-    def _tick(self, payload: bytes, now: int) -> None:
-        self.put_ns = self.control_ns = 0
-        self._poll_neighbours(now)
-        v = self._checked(payload, now)
-        if v is None:
-            return
+    def _step(self, v: tuple, now: int) -> None:
+        """The tick's second half for this daemon (the first, Daemon._sample, checks the sample alone: no compiled
+        tick here): the source controller steps on the sample with the allocation's P^{r,in}."""
         t_control = _now_ns()
         seq, t = v[0], v[1]
         if self.restarts != self._seen_restarts:

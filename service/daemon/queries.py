@@ -31,7 +31,8 @@ class DaemonQueries:
         c = self.cfg
         ls = self.last_sample
         return {
-            "id": c.id, "version": __version__, "state": self.state, "config_version": self.config_version,
+            "id": c.id, "version": __version__, "state": "failed" if self.failure else self.state,
+            "failure": self.failure.reason, "config_version": self.config_version,
             "loop": {"rate_hz": c.loop.rate_hz, "trigger": c.loop.trigger,
                      **self.stats.summary(now, fresh=self.state == "shutdown"),
                      # samples the full queue dropped (oldest first) while the loop thread was held up
@@ -111,6 +112,8 @@ class DaemonQueries:
 
     def apply_sets(self, sets: list[str]) -> tuple[bool, dict]:
         """Validate ``controller.X=value`` / ``lifecycle=active|inactive`` and hand them to the loop."""
+        if self.failure:
+            return False, {"error": f"the loop failed, nothing can be set: {self.failure.reason}"}
         ctl = [s for s in sets if not s.startswith("lifecycle=")]
         life = [s.split("=", 1)[1].strip().strip('"') for s in sets if s.startswith("lifecycle=")]
         if life and life[-1] not in ("active", "inactive"):

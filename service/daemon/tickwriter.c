@@ -20,6 +20,8 @@ typedef struct {
     unsigned char cmd_magic, version, group_id, meas_magic;
     int has_meas;  /* accept() configured */
     double v_min, v_max, i_max;
+    unsigned long long seq_limit;  /* accept(): seq < seq_limit, t_min <= t < t_limit (schemas.codec MEAS.ranges) */
+    double t_min, t_limit;
 } TickWriter;
 
 static void put_u64(unsigned char *p, double x) { uint64_t q = (uint64_t)x; memcpy(p, &q, 8); }
@@ -36,20 +38,22 @@ static void TickWriter_release(TickWriter *self)
 }
 
 /* TickWriter(kernel, hist_seq, hist_u, hist_r, cmd_format, cmd_magic, version, ring=None, ring_index=None, slots=0,
- *            group_id=0, group_format="", meas_format="", meas_magic=0, v_min=0, v_max=0, i_max=0) */
+ *            group_id=0, group_format="", meas_format="", meas_magic=0, v_min=0, v_max=0, i_max=0,
+ *            seq_limit=2^53, t_min=0, t_limit=2^32) */
 static int TickWriter_init(TickWriter *self, PyObject *args, PyObject *kw)
 {
     static char *names[] = {"kernel", "hist_seq", "hist_u", "hist_r", "cmd_format", "cmd_magic", "version", "ring",
                             "ring_index", "slots", "group_id", "group_format", "meas_format", "meas_magic", "v_min",
-                            "v_max", "i_max", NULL};
+                            "v_max", "i_max", "seq_limit", "t_min", "t_limit", NULL};
     PyObject *kern, *hs, *hu, *hr, *ring = Py_None, *widx = Py_None;
     const char *cmd_fmt, *group_fmt = "", *meas_fmt = "";
     int magic, version, group_id = 0, meas_magic = 0;
     long long slots = 0;
-    double v_min = 0.0, v_max = 0.0, i_max = 0.0;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLissiddd", names, &KernelType, &kern, &hs, &hu, &hr,
+    double v_min = 0.0, v_max = 0.0, i_max = 0.0, t_min = 0.0, t_limit = 4294967296.0;
+    unsigned long long seq_limit = 1ULL << 53;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLissidddKdd", names, &KernelType, &kern, &hs, &hu, &hr,
                                      &cmd_fmt, &magic, &version, &ring, &widx, &slots, &group_id, &group_fmt,
-                                     &meas_fmt, &meas_magic, &v_min, &v_max, &i_max))
+                                     &meas_fmt, &meas_magic, &v_min, &v_max, &i_max, &seq_limit, &t_min, &t_limit))
         return -1;
     TickWriter_release(self);
     if (strcmp(cmd_fmt, CMD_FORMAT) != 0) {
@@ -63,6 +67,12 @@ static int TickWriter_init(TickWriter *self, PyObject *args, PyObject *kw)
     }
     self->meas_magic = (unsigned char)meas_magic;
     self->v_min = v_min; self->v_max = v_max; self->i_max = i_max;
+    if (seq_limit > (1ULL << 53)) {  /* step() carries seq as a double: exact only below 2^53 */
+        PyErr_Format(PyExc_ValueError, "TickWriter: seq_limit %llu above 2^53, where a double stops being exact",
+                     seq_limit);
+        return -1;
+    }
+    self->seq_limit = seq_limit; self->t_min = t_min; self->t_limit = t_limit;
     if (PyObject_GetBuffer(hs, &self->hseq, PyBUF_WRITABLE) < 0 || PyObject_GetBuffer(hu, &self->hu, PyBUF_WRITABLE)
         < 0 || PyObject_GetBuffer(hr, &self->hr, PyBUF_WRITABLE) < 0)
         return -1;
@@ -167,9 +177,10 @@ static PyObject *TickWriter_step(TickWriter *self, PyObject *const *args, Py_ssi
 }
 
 /* accept(payload, last_seq, last_t) -> the measurement's values (seq, t, i, v, u, i_load), exactly as schemas.codec
- * MEAS.decode gives them, when the daemon's checks in _tick would take it as the next ordinary sample: well formed
- * and finite, v in [v_min, v_max], |i| and |i_load| <= i_max, seq after last_seq >= 0 (not the first sample or a
- * restart), t after last_t; else None, and the Python checks decide (and name the reason). */
+ * MEAS.decode gives them, when the daemon's checks in _tick would take it as the next ordinary sample: well formed,
+ * finite and admissible (seq < seq_limit, t in [t_min, t_limit)), v in [v_min, v_max], |i| and |i_load| <= i_max, seq
+ * after last_seq >= 0 (not the first sample or a restart), t after last_t; else None, and the Python checks decide
+ * (and name the reason). */
 static PyObject *TickWriter_accept(TickWriter *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs != 3) {
@@ -198,7 +209,9 @@ static PyObject *TickWriter_accept(TickWriter *self, PyObject *const *args, Py_s
             Py_RETURN_NONE;
     if (!(self->v_min <= x[2] && x[2] <= self->v_max) || fabs(x[1]) > self->i_max || fabs(x[4]) > self->i_max)
         Py_RETURN_NONE;
-    if (seq > (uint64_t)INT64_MAX || (long long)seq <= last_seq || !(x[0] > last_t))
+    if (seq >= self->seq_limit || !(self->t_min <= x[0] && x[0] < self->t_limit))
+        Py_RETURN_NONE;
+    if ((long long)seq <= last_seq || !(x[0] > last_t))
         Py_RETURN_NONE;
     return Py_BuildValue("(Kddddd)", (unsigned long long)seq, x[0], x[1], x[2], x[3], x[4]);
 }

@@ -210,6 +210,17 @@ def test_bench_core_and_tick_measure_both_cores_in_one_run(capsys):
         assert tick[impl]["recorder_drops"] == {}
 
 
+def test_bench_fuzz_runs_and_reports_its_keys(capsys):
+    """bench fuzz: a few hundred bad frames beside a lockstep stack; the keys of docs/benchmarks.md's row, and what a
+    run that holds them says (the 100 000-frame figure is the bench's, not this test's)."""
+    assert main(["bench", "fuzz", "-n", "400", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["frames_sent"] == 400 and r["counted_equal_sent"] and r["counted_by_reason"] == r["sent_by_reason"]
+    assert r["loop_deaths"] == 0 and sum(r["tracebacks"].values()) == 0 and r["commands_after_bad_frames"] == 0
+    assert r["samples_answered_twice"] == 0 and r["lockstep_timeouts"] == 0
+    assert r["v_max_dev_after_50ms_pct"] is not None and r["frames_per_s"] > 0
+
+
 def test_bench_wake_measures_both_slack_settings_and_gives_the_thread_its_own_back(capsys):
     from service.priority import DEFAULT_TIMER_SLACK_NS, timer_slack_ns
 

@@ -431,6 +431,29 @@ def test_a_lost_graph_hold_is_taken_again_before_the_next_publish():
         bridge.close()
 
 
+def test_a_bridge_thread_that_fails_fails_the_bridge_visibly(monkeypatch):
+    """The graph thread ended by an exception nobody expected (a status reply it could not read, say): before, the
+    bridge served on with a graph nobody updated; now it fails, says why in status (and its command exits 1)."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    bridge = Bridge(ZenohConfig(mode="peer", listen=[ep]), [], port=0)
+
+    def probe(cid):
+        raise TypeError(f"a status of {cid} it cannot read")
+
+    monkeypatch.setattr(bridge, "_probe", probe)
+    bridge.start()
+    try:
+        with open_session(ZenohConfig(mode="peer", connect=[ep])) as s:
+            token = s.liveliness().declare_token("energyctl/x/alive")
+            assert wait_until(lambda: bool(bridge.failure), 10.0)
+            token.undeclare()
+        st = bridge.status()
+        assert st["state"] == "failed" and st["failure"].startswith("foxglove-graph: TypeError: a status of x")
+        assert bridge._stop.is_set()  # the parameters' thread stops too
+    finally:
+        bridge.close()
+
+
 def test_the_bridge_holds_every_parameter_it_knows_before_it_publishes_their_values(stack):
     """The parameter lock has the graph lock's hazard (GraphHold): the bridge's own connection subscribes to every
     parameter name it read from the daemons, confirmed by the server, before the parameters thread publishes."""

@@ -7,7 +7,7 @@ import math
 import struct
 
 import pytest
-from conftest import SCENARIOS, QueryStub
+from conftest import SCENARIOS, QueryStub, RingStub
 
 from clients.live import configs_from_scenario
 from schemas.codec import CMD, MEAS, Z
@@ -45,6 +45,11 @@ def test_good_samples_step_the_core(daemon):
     (MEAS.struct.pack(0xE1, 1, 5, 5e-4, math.nan, 80.0, 80.0, 15.0), "meas.i: invalid"),
     (MEAS.struct.pack(0xE1, 1, 5, 5e-4, 15.0, math.inf, 80.0, 15.0), "meas.v: invalid"),
     (MEAS.struct.pack(0xE1, 1, 5, 5e-4, 15.0, 80.0, -math.inf, 15.0), "meas.u: invalid"),
+    (MEAS.struct.pack(0xE1, 1, 2**63, 5e-4, 15.0, 80.0, 80.15, 15.0), "meas.seq: invalid"),  # issue 30's frame
+    (MEAS.struct.pack(0xE1, 1, 2**64 - 1, 5e-4, 15.0, 80.0, 80.15, 15.0), "meas.seq: invalid"),
+    (MEAS.struct.pack(0xE1, 1, 2**53, 5e-4, 15.0, 80.0, 80.15, 15.0), "meas.seq: invalid"),  # not exact as a double
+    (meas(5, t=-5e-4), "meas.t: invalid"),
+    (meas(5, t=2.0**32), "meas.t: invalid"),
     (meas(5, v=0.0), "meas.v: out of range"),
     (meas(5, v=-3.0), "meas.v: out of range"),
     (meas(5, v=5000.0), "meas.v: out of range"),
@@ -61,6 +66,21 @@ def test_malformed_or_out_of_range_measurements_never_reach_the_core(daemon, pay
     assert feed(daemon, meas(6))  # and the loop goes on
 
 
+@pytest.mark.parametrize("seq", [2**53, 2**63, 2**64 - 1])
+def test_a_seq_beyond_what_the_loop_holds_is_rejected_and_status_keeps_answering(daemon, seq):
+    """Issue 30: a frame with seq >= 2^63 passed the codec (u64), reached the loop-delay history (int64) and ended
+    the loop thread with OverflowError; a status query then failed in numpy. Now decode rejects it by name, the
+    seq after it is taken as the next sample, and status (with its loop-delay estimate) answers."""
+    for k in range(3):
+        assert feed(daemon, meas(k))
+    assert not feed(daemon, MEAS.struct.pack(0xE1, 1, seq, 3e-4, 15.0, 80.0, 80.15, 15.0))
+    assert daemon.rejected == {"meas.seq: invalid": 1}
+    assert daemon.last_reject == f"meas.seq: invalid ({seq} not in [0, 2^53))"
+    assert feed(daemon, meas(3)) and daemon.stats.missing_samples == 0
+    st = daemon.status()
+    assert st["last_sample"]["seq"] == 3 and st["loop_delay"]["window"] >= 0
+
+
 def test_duplicate_backwards_and_skipped_sequence_numbers(daemon):
     for k in range(3):
         assert feed(daemon, meas(k))
@@ -71,6 +91,20 @@ def test_duplicate_backwards_and_skipped_sequence_numbers(daemon):
     assert daemon.rejected["meas.t: not after the previous sample"] == 1 and daemon.last_cmd[2] == 0.0
     assert feed(daemon, meas(7))  # a gap: accepted, counted
     assert daemon.stats.missing_samples == 4
+
+
+def test_a_passed_seq_gets_no_answer_whatever_its_values_a_new_one_out_of_range_is_held(daemon):
+    """A frame of a seq already answered is rejected before its values are looked at: no plant waits for its answer
+    (a burst of holds for passed samples crowded the command key, whose puts drop under congestion). A new seq with v
+    out of range is held: its hold answers the sample the plant waits for."""
+    for k in range(3):
+        assert feed(daemon, meas(k))
+    answered = daemon.last_cmd
+    assert not feed(daemon, meas(1, v=5000.0)) and daemon.last_cmd == answered
+    assert daemon.rejected == {"meas.seq: duplicate or not increasing": 1}
+    assert not feed(daemon, meas(3, v=5000.0)) and daemon.last_cmd == (3, 3 * 1e-4, 0.0, 0.0, True)
+    assert daemon.rejected["meas.v: out of range"] == 1
+    assert feed(daemon, meas(3))  # the held sample did not become the previous one
 
 
 def test_plant_restart_reinitialises_the_estimator(daemon):
@@ -84,20 +118,8 @@ def test_plant_restart_reinitialises_the_estimator(daemon):
 
 def test_bad_neighbour_messages_are_counted_and_a_local_reference_is_used_when_silent(daemon):
     nb = daemon.neighbours[0]
-
-    class Msg:
-        def __init__(self, b):
-            self.payload = type("P", (), {"to_bytes": lambda s: b})()
-
-    class Ring:
-        def __init__(self, items):
-            self.items = list(items)
-
-        def try_recv(self):
-            return self.items.pop(0) if self.items else None
-
     bad = Z.struct.pack(0x21, 1, 1, 0.0, math.nan, 0, 0, 0, 0, 0, 0, 0, 0, 0)
-    nb.sub = Ring([Msg(bad), Msg(b"junk")])  # one message per tick, as from a ring of one
+    nb.sub = RingStub([bad, b"junk"])  # one message per tick, as from a ring of one
     assert feed(daemon, meas(0)) and feed(daemon, meas(1))
     assert daemon.rejected == {"load.P_r_out: invalid": 1, "load.<payload>: invalid": 1}
     assert nb.P == 1200.0  # the last good value stands
@@ -231,3 +253,19 @@ def test_the_query_loop_answers_every_query_a_bad_one_and_an_unencodable_reply_i
     assert queries[2].got[0] == "err" and "could not be encoded" in queries[2].got[1]["error"]
     assert queries[3].got is None and not queries[3].dropped
     assert all(q.dropped for q in queries[:3])
+
+
+def test_the_load_peer_follows_only_the_plants_next_sample():
+    """The lockstep load answers each measurement on the plant's key with its z for that seq and t: a duplicate, an
+    older, a not-later or a malformed frame on that key (a corrupted or stray sender) is not the plant's next sample
+    and gets no answer (the controller, which rejects it, then waited for the load's z of the real one); seq 0 is
+    the plant restarting."""
+    from clients.peers.load import _plant_clock
+
+    assert _plant_clock(meas(5, t=0.5), None) == (5, 0.5)
+    assert _plant_clock(meas(6, t=0.6), (5, 0.5)) == (6, 0.6)
+    assert _plant_clock(meas(9, t=0.9), (5, 0.5)) == (9, 0.9)  # a gap
+    for frame in (meas(5, t=0.7), meas(3, t=0.7), meas(6, t=0.5), meas(6, t=0.7)[:-1],
+                  MEAS.struct.pack(0xE1, 1, 2**63, 1.0, 1, 80, 1, 1)):
+        assert _plant_clock(frame, (5, 0.5)) is None
+    assert _plant_clock(meas(0), (5, 0.5)) == (0, 0.0)  # a restart

@@ -174,6 +174,48 @@ def test_the_daemon_forecasts_each_announced_window_and_checks_it_ahead(daemon_a
     assert forecast()["reason"].startswith("Qdot^r,out")
 
 
+def plant_side(d: Daemon):
+    """On the daemon's own session, a plant's two keys: the seqs of the commands it sends (a list a subscriber fills,
+    and the subscriber), and a publisher of measurements."""
+    got: list[int] = []
+    sub = d.session.declare_subscriber("energyctl/source/cmd",
+                                       lambda m: got.append(CMD.decode(m.payload.to_bytes())[0]))
+    return got, sub, d.session.declare_publisher("energyctl/source/meas")
+
+
+def test_a_lockstep_loop_waits_for_its_neighbours_only_on_a_sample_it_steps_on():
+    """Lockstep waited for the neighbours' messages of the seq read off any payload before checking it: a bit flip in
+    a frame's magic, a truncated frame, a seq beyond 2^53, a NaN, a v out of range (held) with a seq far ahead held
+    the loop for the whole lockstep_timeout_s and marked every neighbour lagging. Now the sample is checked first and
+    only one the core steps on is waited for; the others are rejected (or held: answered with du/dt = 0) at once,
+    and the next sample is answered with the neighbours still followed."""
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=True, rate_hz=10000.0)
+    comp["loop"].update(catch_up=8, lockstep_timeout_s=1.0)
+    comp["forecast"] = {"enabled": False}
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    try:
+        nb = d.neighbours[0]
+        nb.seq, nb.count, nb.P, nb.rx_ns, nb.alive = 1, 1, 1200.0, time.monotonic_ns(), True  # its z for sample 1
+        got, sub, pub = plant_side(d)
+        far = MEAS.struct.pack(0xE1, 1, 2**40, 1e-4, 15.0, 80.0, 80.15, 15.0)
+        bad = [b"\xe2" + far[1:], far[:1] + b"\x07" + far[2:], far[:20], far + b"\x00",
+               MEAS.struct.pack(0xE1, 1, 2**63, 1e-4, 15.0, 80.0, 80.15, 15.0),
+               MEAS.encode(2**40, 1e-4, float("nan"), 80.0, 80.15, 15.0),
+               MEAS.encode(2**40, 1e-4, 15.0, 8000.0, 80.15, 15.0)]  # held: answered with a hold, not stepped on
+        for payload in [*bad, MEAS.encode(1, 1e-4, 15.0, 80.0, 80.15, 15.0)]:
+            pub.put(payload)
+        assert wait_until(lambda: d.meas_q.qsize() == len(bad) + 1, 5.0)
+        d.run_loop(max_ticks=len(bad) + 1)
+        assert wait_until(lambda: got == [2**40, 1], 5.0), got
+        assert d.stats.lockstep_timeouts == 0 and not nb.lagging
+        assert sum(d.rejected.values()) == len(bad), d.rejected
+        sub.undeclare()
+    finally:
+        d.close()
+
+
 @pytest.mark.parametrize(("catch_up", "answered"), [(1, [5]), (3, [3, 4, 5])])
 def test_a_sample_triggered_loop_answers_the_newest_queued_samples_in_order(catch_up, answered):
     """loop.catch_up: of six queued samples, the newest catch_up are answered, oldest first; 1 = only the newest."""
@@ -184,10 +226,7 @@ def test_a_sample_triggered_loop_answers_the_newest_queued_samples_in_order(catc
     d = Daemon(config_from_dict(ComponentConfig, comp))
     d.open()
     try:
-        got = []
-        sub = d.session.declare_subscriber("energyctl/source/cmd",
-                                           lambda m: got.append(CMD.decode(m.payload.to_bytes())[0]))
-        pub = d.session.declare_publisher("energyctl/source/meas")
+        got, sub, pub = plant_side(d)
         for k in range(6):
             pub.put(MEAS.encode(k, k * 1e-4, 15.0, 80.0, 80.15, 15.0))
         assert wait_until(lambda: d.meas_q.qsize() == 6, 5.0)
@@ -213,10 +252,7 @@ def test_samples_arriving_while_the_loop_is_held_up_keep_only_the_newest_in_memo
     d.open()
     n = 3 * MEAS_QUEUE_MAX
     try:
-        got = []
-        sub = d.session.declare_subscriber("energyctl/source/cmd",
-                                           lambda m: got.append(CMD.decode(m.payload.to_bytes())[0]))
-        pub = d.session.declare_publisher("energyctl/source/meas")
+        got, sub, pub = plant_side(d)
         for k in range(n):  # the loop is not running: held up
             pub.put(MEAS.encode(k, k * 1e-4, 15.0, 80.0, 80.15, 15.0))
         assert wait_until(lambda: d.meas_q.dropped == n - MEAS_QUEUE_MAX, 10.0), d.meas_q.dropped

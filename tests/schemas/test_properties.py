@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import math
+import operator
 
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from schemas.codec import CMD, EST, LOOP, MEAS, TICK_IN, DecodeError, Z
+from schemas.codec import ALLOC, CMD, EST, GRID, LOOP, MEAS, TICK_IN, DecodeError, Z, admits
 from schemas.component import ComponentConfig, config_from_dict
 from schemas.scenario import ScenarioError, scenario_from_dict
 
-CODECS = [MEAS, CMD, Z, TICK_IN, EST, LOOP]
+CODECS = [MEAS, CMD, Z, TICK_IN, EST, LOOP, ALLOC]
 FAST = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
@@ -25,21 +26,73 @@ def test_any_bytes_decode_or_raise_decode_error_naming_a_field(codec, payload):
         return
     assert len(vals) == len(codec.fields)
     assert all(math.isfinite(vals[k]) for k in codec.floats)
+    assert all(admits(r, vals[codec.fields.index(name)]) for name, r in codec.ranges.items())
+
+
+def admissible(codec, data) -> list:
+    """Values for every field of the codec, each anywhere in its admissible range (what its type holds, else)."""
+    fmt = codec.struct.format.lstrip("<")[2:]
+    vals = []
+    for name, c in zip(codec.fields, fmt, strict=True):
+        lo, _, hi, hi_op, _ = codec.ranges.get(name, (None, None, None, None, ""))
+        if c == "Q":
+            top = 2**64 - 1 if hi is None else hi - 1 if hi_op is operator.lt else hi
+            vals.append(data.draw(st.integers(lo or 0, top)))
+        elif c == "d":
+            vals.append(data.draw(st.floats(lo, hi, allow_nan=False, allow_infinity=False,
+                                            exclude_max=hi_op is operator.lt)))
+        else:
+            vals.append(data.draw(st.booleans()))
+    return vals
 
 
 @FAST
 @given(st.sampled_from(CODECS), st.data())
-def test_finite_values_round_trip_exactly(codec, data):
-    fmt = codec.struct.format.lstrip("<")[2:]
-    vals = []
-    for c in fmt:
-        if c == "Q":
-            vals.append(data.draw(st.integers(0, 2**64 - 1)))
-        elif c == "d":
-            vals.append(data.draw(st.floats(allow_nan=False, allow_infinity=False)))
-        else:
-            vals.append(data.draw(st.booleans()))
+def test_admissible_values_round_trip_exactly(codec, data):
+    vals = admissible(codec, data)
     assert codec.decode(codec.encode(*vals)) == tuple(vals)
+
+
+# the boundary values a u64 and a time stamp can take on the wire, inside and outside the admissible ranges
+U64_EDGES = [0, 1, 2**31, 2**32, 2**53 - 1, 2**53, 2**63, 2**64 - 1]
+T_EDGES = [0.0, -0.0, 5e-324, -5e-324, -1.0, 2.0**32 - 2.0**-20, 2.0**32, 2.0**53, 2.0**63, 2.0**64,
+           1.7976931348623157e308, -1.7976931348623157e308]
+BOOL_EDGES = [0, 1, 2, 255]  # a bool's u8: 0 or 1, nothing else
+
+
+@FAST
+@given(st.sampled_from([c for c in CODECS if c.ranges]), st.data())
+def test_each_field_at_its_edges_is_taken_inside_its_range_and_rejected_by_name_outside(codec, data):
+    """seq and window in [0, 2^53), t in [0, 2^32) (schemas.messages), a bool 0 or 1: every boundary of the wire type
+    is either decoded to itself or rejected naming that field and its range, whatever the other fields hold."""
+    vals = admissible(codec, data)
+    name = data.draw(st.sampled_from(sorted(codec.ranges)))
+    k = codec.fields.index(name)
+    x = data.draw(st.sampled_from(BOOL_EDGES if isinstance(vals[k], bool) else U64_EDGES if isinstance(vals[k], int)
+                                  else T_EDGES))
+    vals[k] = x
+    inside = admits(codec.ranges[name], x)
+    try:
+        got = codec.decode(codec.encode(*vals))
+    except DecodeError as e:
+        assert not inside
+        assert (e.field, e.reason) == (name, f"{x!r} not in {codec.ranges[name][4]}")
+    else:
+        assert inside and got[k] == x
+
+
+def test_the_ranges_are_what_the_code_after_the_decoder_holds():
+    """seq below 2^53 is exact as a double (the compiled tick carries it as one) and fits an int64 (numpy, the
+    loop-delay history); t below 2^32 s gives a u64 of nanoseconds (an MCAP log time) and resolves 1 us."""
+    for codec in (MEAS, CMD, Z, ALLOC):
+        assert (codec.ranges["seq"][4], codec.ranges["t"][4]) == ("[0, 2^53)", "[0, 2^32)"), codec.name
+        assert admits(codec.ranges["seq"], 2**53 - 1) and not admits(codec.ranges["seq"], 2**53)
+    assert MEAS.half_open_ranges() == {"seq": (0, 2**53), "t": (0.0, 2.0**32)}  # what the compiled tick checks
+    assert float(2**53 - 1) == 2**53 - 1 and float(2**53 + 1) != 2**53 + 1
+    assert round(2.0**32 * 1e9) < 2**64 and math.ulp(2.0**32) == 2.0**-20
+    assert Z.ranges["window"][4] == ALLOC.ranges["window"][4] == "[0, 2^53)"
+    assert CMD.ranges["limited"][4] == "[0, 1]"
+    assert GRID.ranges["seq"] == MEAS.ranges["seq"] and GRID.ranges["t"] == MEAS.ranges["t"]
 
 
 @FAST

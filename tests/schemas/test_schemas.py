@@ -88,7 +88,9 @@ ORDER = {"little": "<", "big": ">"}
 
 
 def _values(model: type[BaseModel], salt: int) -> BaseModel:
-    """An instance whose fields all differ: ints above 2^32, floats not integral, bools both ways."""
+    """An instance whose fields all differ: ints above 2^32, floats not integral (negative unless the field's
+    documented range starts at 0), bools both ways."""
+    props = model.model_json_schema()["properties"]
     vals = {}
     for k, (name, f) in enumerate(model.model_fields.items()):
         if f.annotation is bool:
@@ -96,7 +98,7 @@ def _values(model: type[BaseModel], salt: int) -> BaseModel:
         elif f.annotation is int:
             vals[name] = (1 << 33) + 1000 * salt + k
         else:
-            vals[name] = -1234.5678 * (k + 1) + salt / 7.0
+            vals[name] = (1 if props[name].get("minimum") == 0 else -1) * (1234.5678 * (k + 1) + salt / 7.0)
     return model(**vals)
 
 
