@@ -515,7 +515,7 @@ class Daemon(DaemonQueries):
         seq, t = v[0], v[1]
         restart = seq == 0 and self._last_seq > 0
         # a seq already passed, whatever its values: no plant waits for its answer, so it gets none (a hold would answer
-        # a sample long gone, one more put on the command key, whose puts drop under congestion: decision 0030)
+        # a sample long gone, one more put on the command key, whose puts drop under congestion: decision 0031)
         if seq <= self._last_seq and not restart:
             self._reject("meas.seq: duplicate or not increasing", now)
             return None
