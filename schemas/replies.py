@@ -205,6 +205,9 @@ class StatusReply(Reply):
     plant_restarts: int = Field(ge=0, description="times the plant's seq went back to 0 (the core was reset)")
     late_command_ticks: int = Field(ge=0, description="ticks at which commands were seen not acting in time "
                                                       "(controller.late_detect_V)")
+    current_limited_ticks: int = Field(default=0, ge=0, description="ticks whose command the nested law shaped at "
+                                                                    "controller.limits.i_max_A (the source at its "
+                                                                    "current limit)")
     loop_delay: LoopDelayStatus
     logging: LoggingStatus | None = Field(description="null without log_dir")
 

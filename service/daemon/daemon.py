@@ -76,6 +76,9 @@ class Daemon(DaemonQueries):
         self._idle = 0
         self.restarts = 0
         self.late_ticks = 0  # ticks at which the core saw its commands not acting in time (late_detect_V)
+        self.current_limited_ticks = 0  # ticks whose command the law shaped at limits.i_max_A (nested)
+        self._ilim_out = None  # the core's output to read i_limited from, while a current limit is set
+        self._watch_current_limit(cfg.controller)
         self._reject_events: dict[str, tuple[int, int]] = {}  # reason -> (loop ns of its last event, rejects since)
         self.degraded_reason = ""
         self.reference = "none"
@@ -446,11 +449,16 @@ class Daemon(DaemonQueries):
         nb.count += 1
         return v
 
+    def _watch_current_limit(self, ctl) -> None:
+        """Count the ticks at the current limit only while the nested law has one (a read per tick then)."""
+        self._ilim_out = self.core.out if ctl.kind == "nested" and ctl.limits.i_max_A is not None else None
+
     def _apply_pending(self) -> None:
         """Apply a validated config change or lifecycle transition (called between ticks)."""
         if self._pending is not None:
             new_cfg, ev, text = self._pending
             self.core.set_gains(new_cfg)
+            self._watch_current_limit(new_cfg)
             self.config_version += 1
             self._tau_p = tau_prime(self.cfg.model.L_H, self.cfg.model.R_ohm, effective_gain(new_cfg, self.cfg.model))
             self._fc_asked = -1  # forecast again with the new gains (at the next neighbour message)
@@ -608,6 +616,8 @@ class Daemon(DaemonQueries):
         self.last_cmd = (seq, t, du, du_next, limited)
         if late:
             self.late_ticks += 1
+        if self._ilim_out is not None and stepped and self._ilim_out.i_limited:
+            self.current_limited_ticks += 1
         if P_out is not None:
             self._feasibility(t, P_out, Qdot_out)
         self._rarer_work(t, stepped and P_out is not None)

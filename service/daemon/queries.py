@@ -54,6 +54,7 @@ class DaemonQueries:
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
             "late_command_ticks": self.late_ticks,
+            "current_limited_ticks": self.current_limited_ticks,
             "loop_delay": self._loop_delay(),
             "logging": self._logging_status(),
         }
