@@ -252,7 +252,8 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
     total_share = sum(shares[s] for s in carrying) or 1.0
     m: dict = {"diverged": diverged_at is not None, "diverged_at_s": diverged_at, "diverged_why": diverged_why,
                "t_end": float(t[-1]) if n else 0.0, "unsupplied_s": dict(unsupplied or {}),
-               **hold_metrics(t, np.array([np.abs(v - v_nom) / v_nom for v in res.buses.values()]).reshape(len(res.buses), n),
+               **hold_metrics(t, np.array([np.abs(v - v_nom) / v_nom for v in res.buses.values()])
+                              .reshape(len(res.buses), n),
                               band_must_hold(t, acc, [e.t for e in res.events]), band, list(res.buses)),
                "sources": {}, "buses": {}, "events": []}
     for s in names:
