@@ -83,7 +83,7 @@ def grid_from_args(args: argparse.Namespace) -> dict[str, list]:
             raise ScenarioError(f"--grid {g!r}: expected key=v1,v2,...")
         grid[key.strip()] = [parse_override(f"x={v}")[1] for v in vals.split(",")]
     if not grid:
-        raise ScenarioError("sweep: give --preset robustness or at least one --grid key=v1,v2")
+        raise ScenarioError("sweep: give --preset robustness, network or envelope, or at least one --grid key=v1,v2")
     return grid
 
 
