@@ -152,6 +152,14 @@ def solve_rate_for_target(R: float, T: float, i1: float, u1: float, si: float, y
     return c / q if q != 0.0 else 0.0
 
 
+def linearisation_rate(r_prev: float, u_p: float, T: float, u_min: float, u_max: float, r_max: float) -> float:
+    """Where the exact mapping linearises (V/s): the previous command, clipped to what the slew limit r_max and the
+    source's range [u_min, u_max] (V) allow over the period T (s) from u_p (V)."""
+    r_lo = max(-r_max, (u_min - u_p) / T)
+    r_hi = max(r_lo, min(r_max, (u_max - u_p) / T))
+    return min(max(r_prev, r_lo), r_hi)
+
+
 def nested_output(i: float, v: float, u: float, P: float, P_ff: float, Pdot: float, R: float, L: float, C: float,
                   v_ref: float, K_P: float, K_E: float, i_max: float) -> tuple[float, float, float, float, bool]:
     """The nested law's output sigma (W/s) at the state (i A, v V, u V), with the load power P (W) the terminal
@@ -549,9 +557,7 @@ class ControlCore(CoreBase):
             r = (self._pi_u - u_p) / T
         elif kind == "nested":
             K_P, K_E, i_max, decay_u = self._nested
-            r_lo = max(-r_max, (u_min - u_p) / T)
-            r_hi = max(r_lo, min(r_max, (u_max - u_p) / T))
-            r0 = min(max(r_prev, r_lo), r_hi)
+            r0 = linearisation_rate(r_prev, u_p, T, u_min, u_max, r_max)
             Pd = -inc.P_r_in_dot
             P0 = P_load + Pd * dd * T  # the terminal's load power at the period's start (measured)
             F0 = (-inc.P_r_in if self._load_ref else P_load) + Pd * dd * T  # the branch's feed-forward there
@@ -589,9 +595,7 @@ class ControlCore(CoreBase):
                 i_f = max(i_p, i_floor) if i_p >= 0.0 else min(i_p, -i_floor)
                 r = (u_p * di - u_z) / i_f
             else:
-                r_lo = max(-r_max, (u_min - u_p) / T)
-                r_hi = max(r_lo, min(r_max, (u_max - u_p) / T))
-                r0 = min(max(r_prev, r_lo), r_hi)
+                r0 = linearisation_rate(r_prev, u_p, T, u_min, u_max, r_max)
                 i1, v1, u1, si, _ = predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, self.n_pred, R, L, C)
                 if kind == "fblc":
                     e1 = e_p * decay

@@ -120,6 +120,14 @@ static double y_reference(double P_in, double v, double v_ref, double keC)
     return P_in + keC * (v * v - v_ref * v_ref);
 }
 
+/* control.linearisation_rate: the previous command, clipped to what the slew limit and u's range allow */
+static double linearisation_rate(double r_prev, double u_p, double T, double u_min, double u_max, double r_max)
+{
+    double r_lo = PYMAX(-r_max, (u_min - u_p) / T);
+    double r_hi = PYMAX(r_lo, PYMIN(r_max, (u_max - u_p) / T));
+    return PYMIN(PYMAX(r_prev, r_lo), r_hi);
+}
+
 /* control.nested_output: sigma (W/s) and its gradient g[0..2] = d sigma / d(i, v, u); returns 1 at the current
    limit */
 static int nested_output(double i, double v, double u, double P, double P_ff, double Pdot, double R, double L,
@@ -331,9 +339,7 @@ static double law(Kernel *k, double i_p, double v_p, double u_p, double P_load, 
     } else if (k->kind == K_PI) {
         r = (k->pi_u - u_p) / T;
     } else if (k->kind == K_NESTED) {
-        double r_lo = PYMAX(-r_max, (u_min - u_p) / T);
-        double r_hi = PYMAX(r_lo, PYMIN(r_max, (u_max - u_p) / T));
-        double r0 = PYMIN(PYMAX(r_prev, r_lo), r_hi);
+        double r0 = linearisation_rate(r_prev, u_p, T, u_min, u_max, r_max);
         double Pd = -P_in_dot;
         double P0 = P_load + Pd * (double)dd * T;
         double F0 = (k->load_ref ? -P_in : P_load) + Pd * (double)dd * T;
@@ -375,9 +381,7 @@ static double law(Kernel *k, double i_p, double v_p, double u_p, double P_load, 
             double i_f = i_p >= 0.0 ? PYMAX(i_p, i_floor) : PYMIN(i_p, -i_floor);
             r = (u_p * di - u_z) / i_f;
         } else {
-            double r_lo = PYMAX(-r_max, (u_min - u_p) / T);
-            double r_hi = PYMAX(r_lo, PYMIN(r_max, (u_max - u_p) / T));
-            double r0 = PYMIN(PYMAX(r_prev, r_lo), r_hi);
+            double r0 = linearisation_rate(r_prev, u_p, T, u_min, u_max, r_max);
             double i1, v1, u1, sens, sens_v;
             predict_with_sensitivity(i_p, v_p, u_p, P_app, r0, T, k->n_pred, R, L, C, &i1, &v1, &u1, &sens,
                                      &sens_v);
