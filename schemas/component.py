@@ -345,9 +345,14 @@ def load_config(kind: type[BaseModel], path: str | Path, overrides: list[str] | 
     return config_from_dict(kind, data, overrides, str(p))
 
 
+MAX_EXTENDS = 8  # files in an 'extends' chain after the first (the longest here: 1)
+
+
 def _read_toml(p: Path, kind: type[BaseModel], seen: list[Path]) -> dict:
     if p.resolve() in seen:
         raise ScenarioError(f"config {p}: 'extends' loops back to itself ({' -> '.join(map(str, seen))})")
+    if len(seen) > MAX_EXTENDS:
+        raise ScenarioError(f"config {seen[0]}: 'extends' chains more than {MAX_EXTENDS} files (stopped at {p})")
     data = read_toml(p, "config")
     own_base_dir = "base_dir" in data
     if "base_dir" in kind.model_fields:

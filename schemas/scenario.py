@@ -430,10 +430,16 @@ def format_validation_error(err: ValidationError, source: str = "", what: str = 
     for e in err.errors():
         loc = ".".join(str(p) for p in e["loc"])
         got = e.get("input")
-        shown = "" if isinstance(got, dict) or got is None else f" (got {got!r})"
+        shown = "" if isinstance(got, dict) or got is None else f" (got {_short(got)})"
         lines.append(f"  {loc or '<root>'}: {e['msg']}{shown}")
     head = f"invalid {what} {source}".rstrip() + f" ({len(lines)} error{'s' if len(lines) > 1 else ''}):"
     return "\n".join([head, *lines])
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    """repr(value), cut to about limit characters (a 4000-digit number or a long string named in an error)."""
+    r = repr(value)
+    return r if len(r) <= limit else f"{r[:limit]}... ({len(r)} characters)"
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -445,9 +451,11 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not key or any(not p for p in key.split(".")):
         raise ScenarioError(f"override {text!r}: empty key")
     try:
-        value = tomllib.loads(f"x = {raw.strip()}")["x"]
-    except tomllib.TOMLDecodeError:
-        value = raw.strip()
+        value = parse_toml(f"x = {raw.strip()}", f"override {text[:80]!r}")["x"]
+    except ScenarioError as e:
+        if "not valid TOML" not in str(e) or raw.strip()[:1] in "[{" or raw.strip().isdigit():
+            raise  # nested too deep, or an array, a table or a number that is not TOML: not a bare string either
+        value = raw.strip()  # a bare word: the string it spells (--set controller.kind=fblc)
     return key.split("."), value
 
 
@@ -483,16 +491,54 @@ def scenario_from_dict(data: dict, overrides: list[str] | None = None, source: s
         raise ScenarioError(format_validation_error(err, source)) from None
 
 
-def read_toml(p: Path, what: str) -> dict:
-    """The TOML file's table; a file that cannot be read or parsed is a ScenarioError naming it as ``what``."""
+MAX_FILE_BYTES = 1 << 20  # a scenario or config file: 1 MiB (the largest here is under 20 KiB)
+MAX_DEPTH = 16  # tables and arrays nested in a file or a --set value (the deepest here: 5)
+
+
+def parse_toml(text: str, what: str) -> dict:
+    """TOML text's table; anything tomllib or Python refuses (bad syntax, an integer of more than 4300 digits,
+    nesting that exhausts the stack) and nesting deeper than MAX_DEPTH is a ScenarioError naming ``what``."""
     try:
-        text = p.read_text()
+        data = tomllib.loads(text)
+    except RecursionError:
+        raise ScenarioError(f"{what} is nested deeper than {MAX_DEPTH} levels") from None
+    except ValueError as e:  # TOMLDecodeError, and int()'s digit limit
+        raise ScenarioError(f"{what} is not valid TOML: {e}") from None
+    if _depth(data) > MAX_DEPTH:
+        raise ScenarioError(f"{what} is nested deeper than {MAX_DEPTH} levels")
+    return data
+
+
+def _depth(node: Any) -> int:
+    """How deep tables and arrays nest (a scalar: 0), without recursion."""
+    deepest, todo = 0, [(node, 1)]
+    while todo:
+        n, d = todo.pop()
+        if isinstance(n, dict | list):
+            deepest = max(deepest, d)
+            todo.extend((v, d + 1) for v in (n.values() if isinstance(n, dict) else n))
+    return deepest
+
+
+def read_toml(p: Path, what: str) -> dict:
+    """The TOML file's table; a file that cannot be read, is not UTF-8, is larger than MAX_FILE_BYTES, cannot be
+    parsed, nests too deep or holds no key at all is a ScenarioError naming it as ``what``."""
+    try:
+        with open(p, "rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)
     except OSError as e:
         raise ScenarioError(f"cannot read {what} {p}: {e.strerror}") from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise ScenarioError(f"{what} {p} is larger than {MAX_FILE_BYTES >> 20} MiB")
     try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise ScenarioError(f"{what} {p} is not valid TOML: {e}") from None
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ScenarioError(f"{what} {p} is not UTF-8 text (byte {e.start}: {raw[e.start:e.start + 1]!r})") from None
+    data = parse_toml(text, f"{what} {p}")
+    if not data:
+        raise ScenarioError(f"{what} {p} is empty: it sets no key (a run on nothing but defaults is asked for "
+                            "by naming at least one key, e.g. name = \"...\")")
+    return data
 
 
 def load_scenario(path: str | Path, overrides: list[str] | None = None) -> Scenario:

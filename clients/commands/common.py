@@ -18,14 +18,14 @@ CONTROLLERS = ("nested", "fblc", "smc", "lqr", "bm", "pi", "fixed")
 def is_network_file(path: str) -> bool:
     """Whether the TOML file at path is a network scenario (kind = "network"); False if it cannot be read (the
     one-source loader then says why)."""
-    import tomllib
+    from pathlib import Path
 
     from schemas.network import is_network
+    from schemas.scenario import read_toml
 
     try:
-        with open(path, "rb") as f:
-            return is_network(tomllib.load(f))
-    except (OSError, tomllib.TOMLDecodeError):
+        return is_network(read_toml(Path(path), "scenario"))
+    except ScenarioError:
         return False
 
 

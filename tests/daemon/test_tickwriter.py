@@ -220,8 +220,9 @@ def test_the_compiled_tick_answers_a_seq_above_2_to_the_53_with_that_seq():
     out of a daemon; the tick itself no longer depends on it."""
     from array import array
 
-    from schemas.scenario import Scenario
     from service._kernel import Kernel, TickWriter
+
+    from schemas.scenario import Scenario
     from service.core import make_core
 
     scn = Scenario()
