@@ -105,8 +105,13 @@ def parallel(jobs: list[tuple[str, list[str]]], n_jobs: int | None, progress: bo
                 _progress(k, len(jobs), t0)
         return out
     import multiprocessing as mp
+    import threading
 
-    with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(n) as pool:
+    from service.priority import die_with_parent
+
+    # each worker ends with this process (a SIGKILLed sweep left its workers running its grid to the end)
+    tie = (os.getpid(), threading.current_thread() is threading.main_thread())
+    with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(n, die_with_parent, tie) as pool:
         out = []
         for k, m in enumerate(pool.imap(worker, jobs, chunksize=2), 1):
             out.append(m)
