@@ -5,7 +5,9 @@ Two ways in, for two needs:
 
 * ``Stream`` / ``scan`` / ``messages``: every record in file order, chunks expanded, without the summary, so a
   file cut short by SIGKILL yields everything up to its last complete record (``complete`` says whether the
-  footer was reached, ``error`` what ended it early).
+  footer was reached, ``error`` what ended it early); each chunk is checked whole (frame, size, CRC) and a corrupt
+  one is skipped and listed in ``damage`` with its byte offset, the chunks after it still read
+  (docs/decisions/0040-damaged-logs.md).
 * ``read_log``: a log's replay inputs as arrays. From the daemon's tick index (``ring.TickIndex``: one row of
   doubles per tick in zstd attachments, used only when it accounts for every tick) without touching the JSON
   chunks; else by the compiled scanner (``_mcapscan.c`` parses the recorder's flat JSON without a Python
@@ -64,9 +66,6 @@ class CorruptLog(LogError):
     def __init__(self, offset: int, reason: str, path: str | Path | None = None):
         self.offset, self.reason = offset, reason
         super().__init__(f"{path or 'log'}: corrupt chunk at byte {offset}: {reason}")
-
-    def at(self, path: str | Path) -> CorruptLog:
-        return CorruptLog(self.offset, self.reason, path)
 
 
 MAGIC = b"\x89MCAP0\r\n"
