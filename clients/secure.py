@@ -14,7 +14,8 @@ router to that client). Roles, each a Zenoh user whose name is its identity:
 * monitor: the operator without ``config/set`` (read-only dashboards).
 
 Everyone may watch liveliness tokens. A client without credentials, or with wrong ones, is refused at
-connect; a message the ACL denies is dropped by the router (the sender sees no error).
+connect; a message the ACL denies is dropped by the router (the sender sees no error). ``energyctl router`` logs and
+counts both from Zenoh's own log (``run_router(audit=True)``, clients/refusals.py).
 
 With ``tls=True`` the router listens on ``tls/`` endpoints with mutual TLS: a private CA (made here with the
 ``openssl`` command) signs the router's certificate and one client certificate per user whose common name
