@@ -116,10 +116,11 @@ class Event(Msg):
 
     t: float = Field(description="s (sample time of the tick it belongs to, or monotonic time)")
     seq: Index = Field(description="measurement seq the event precedes (config changes apply before it)")
-    kind: str = Field(description="what happened, e.g. config, reject, degraded, plant_restart, neighbour_alive, "
-                                  "neighbour_gone, forecast, recorder_drops, failed")
+    kind: str = Field(description="what happened, e.g. config, config_refused, reject, degraded, plant_restart, "
+                                  "neighbour_alive, neighbour_gone, forecast, recorder_drops, failed")
     detail: str = Field(description="JSON text (config, forecast, plant_restart, recorder_drops) or plain text "
-                                    "(reject, degraded, failed: the reason; neighbour_alive, neighbour_gone: its id)")
+                                    "(reject, degraded, failed: the reason; config_refused: the key and the error "
+                                    "answered; neighbour_alive, neighbour_gone: its id)")
 
 
 class Plant(Msg):

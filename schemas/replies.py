@@ -198,6 +198,13 @@ class StatusReply(Reply):
     rejected: dict[str, int] = Field(description="rejected or held measurements and neighbour messages, by reason "
                                                  "(e.g. 'meas.v: out of range', 'load.t: invalid')")
     last_reject: str = Field(description="the last rejection's reason and detail, '' if none")
+    config_refused: int = Field(default=0, ge=0, description="config requests answered with an error: a config/set "
+                                                             "that was malformed, invalid or not applied, and a set "
+                                                             "sent to the read-only config key (each also logged: a "
+                                                             "stderr line and a config_refused event, at most one "
+                                                             "per second)")
+    last_config_refused: str = Field(default="", description="the last refused config request: the key, then the "
+                                                             "error it was answered with; '' if none")
     reference: Literal["neighbours", "none", "local"] = Field(
         description="where the last tick's P^{r,in} came from: the neighbours, none (du/dt = 0), or "
                     "local_reference_W")

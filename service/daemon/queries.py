@@ -20,10 +20,40 @@ from service.daemon.bus import key
 from service.daemon.loop_stats import HIST
 
 LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
+REFUSED_EVENT_EVERY_NS = 1_000_000_000  # at most one recorded event and stderr line per this (all are counted)
 
 
 class DaemonQueries:
-    """The query side of ``Daemon`` (a mixin: it reads the daemon's state, and writes only ``_pending``)."""
+    """The query side of ``Daemon`` (a mixin: it reads the daemon's state, and writes only ``_pending`` and its
+    count of refused config requests)."""
+
+    config_refused = 0  # config/set requests (and sets sent to config) answered with an error
+    last_config_refused = ""
+    _refused_shown: tuple[int | None, int] = (None, 0)  # (monotonic ns of the last event/line, refusals since)
+    _refused_lock = threading.Lock()
+
+    def _refused(self, what: str, error: str) -> None:
+        """A config request answered with an error: counted, and, at most once per REFUSED_EVENT_EVERY_NS (saying
+        how many it stands for), one stderr line and a ``config_refused`` event in the log. Runs on a query
+        thread, never the loop's."""
+        text = f"{what}: {error}"
+        now = time.monotonic_ns()
+        with self._refused_lock:
+            self.config_refused += 1
+            self.last_config_refused = text
+            last, held = self._refused_shown
+            if last is not None and 0 <= now - last < REFUSED_EVENT_EVERY_NS:
+                self._refused_shown = (last, held + 1)
+                return
+            self._refused_shown = (now, 0)
+        if held:
+            text = f"{text} [and {held} more since the last of these]"
+        print(f"energyctl[{self.cfg.id}]: refused {text} ({self.config_refused} refused so far)", file=sys.stderr,
+              flush=True)
+        rec = self.recorder
+        if rec is not None:
+            t = self.last_sample[1] if self.last_sample else 0.0
+            rec.offer(self.t_ev, t, (t, max(self._last_seq, 0), "config_refused", text))
 
     def status(self) -> dict:
         now = time.monotonic_ns()
@@ -51,6 +81,7 @@ class DaemonQueries:
                             "recent": [v.__dict__ for v in self.feas.violations],
                             "forecast": self.forecaster.status() if self.forecaster is not None else None},
             "rejected": dict(self.rejected), "last_reject": self.last_reject,
+            "config_refused": self.config_refused, "last_config_refused": self.last_config_refused,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
             "late_command_ticks": self.late_ticks,
@@ -97,6 +128,7 @@ class DaemonQueries:
     def _config_reply(self, query) -> tuple[bool, dict]:
         if query.payload is not None or "set" in str(query.parameters).split(";")[0].split("&"):
             where = key(self.cfg.prefix, self.cfg.id, "config/set")
+            self._refused("config", f"read-only here; sets go to {where}")
             return False, {"error": f"config is read-only here; sets go to {where}"}
         return True, {"controller": self.core.cfg.model_dump(), "state": self.state,
                       "config_version": self.config_version}
@@ -107,9 +139,13 @@ class DaemonQueries:
             sets = req.get("set") if isinstance(req, dict) else None
             if not isinstance(sets, list) or not sets or not all(isinstance(x, str) for x in sets):
                 raise ScenarioError("set: expected a non-empty list of 'key=value' strings, as {\"set\": [...]}")
-        except (ValueError, ScenarioError) as e:
-            return False, {"error": str(e)}
-        return self.apply_sets(sets)
+        except (ValueError, ScenarioError, RecursionError) as e:
+            ok, body = False, {"error": str(e) if not isinstance(e, RecursionError) else "set: nested too deeply"}
+        else:
+            ok, body = self.apply_sets(sets)
+        if not ok:
+            self._refused("config/set", body["error"])
+        return ok, body
 
     def apply_sets(self, sets: list[str]) -> tuple[bool, dict]:
         """Validate ``controller.X=value`` / ``lifecycle=active|inactive`` and hand them to the loop."""
