@@ -22,6 +22,15 @@ from service.daemon.loop_stats import HIST
 LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
 
 
+ERROR_TEXT_MAX = 300  # a refusal quotes at most this much of what it refuses (never the request back)
+
+
+def brief(text: str, limit: int = ERROR_TEXT_MAX) -> str:
+    """An error text cut to ``limit`` characters, saying how long it was: a refusal names the field and why, and never
+    echoes a large value back."""
+    return text if len(text) <= limit else f"{text[:limit]}... [{len(text)} characters, cut]"
+
+
 class DaemonQueries:
     """The query side of ``Daemon`` (a mixin: it reads the daemon's state, and writes only ``_pending``)."""
 
@@ -50,7 +59,8 @@ class DaemonQueries:
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
                             "recent": [v.__dict__ for v in self.feas.violations],
                             "forecast": self.forecaster.status() if self.forecaster is not None else None},
-            "rejected": dict(self.rejected), "last_reject": self.last_reject,
+            "rejected": self._rejected_counts(), "last_reject": self.last_reject,
+            "clock_resyncs": self.clock_resyncs, "refused_requests": self.refused_requests,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
             "late_command_ticks": self.late_ticks,
@@ -58,6 +68,13 @@ class DaemonQueries:
             "loop_delay": self._loop_delay(),
             "logging": self._logging_status(),
         }
+
+    def _rejected_counts(self) -> dict[str, int]:
+        """The loop's rejections and those refused on receipt (Daemon._admit), by reason."""
+        out = dict(self.rejected)
+        for k, n in list(self.rx_rejected.items()):
+            out[k] = out.get(k, 0) + n
+        return out
 
     def _loop_delay(self) -> dict:
         """The loop delay measured over this plant epoch's newest ticks (service/core/delay.py), against the delay the
@@ -102,6 +119,21 @@ class DaemonQueries:
                       "config_version": self.config_version}
 
     def _config_set_reply(self, query) -> tuple[bool, dict]:
+        limit = self.cfg.query_max_bytes
+        size = len(query.payload) if query.payload is not None else 0
+        if size > limit:  # measured before it is read: not parsed, not validated, not echoed
+            self.refused_requests += 1
+            return False, {"error": f"config/set: a request of {size} bytes, above query_max_bytes = {limit}; not "
+                                    "read"}
+        try:
+            ok, body = self._config_set(query)
+        except Exception as e:  # noqa: BLE001 - whatever the request made fail: refused, briefly
+            ok, body = False, {"error": f"set: {type(e).__name__}: {e}"}
+        if not ok:
+            body = {"error": brief(str(body.get("error", "")))}
+        return ok, body
+
+    def _config_set(self, query) -> tuple[bool, dict]:
         try:
             req = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
             sets = req.get("set") if isinstance(req, dict) else None
@@ -138,5 +170,6 @@ class DaemonQueries:
             self._pending = (new, ev, new.model_dump_json())
             if not ev.wait(2.0):
                 return False, {"error": "not applied: the loop did not tick within 2 s"}
-        print(f"energyctl[{self.cfg.id}]: config set {sets} -> version {self.config_version}", file=sys.stderr)
+        print(f"energyctl[{self.cfg.id}]: config set {brief(str(sets))} -> version {self.config_version}",
+              file=sys.stderr)
         return True, {"applied": sets, "config_version": self.config_version, "controller": self.core.cfg.model_dump()}
