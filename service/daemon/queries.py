@@ -120,7 +120,11 @@ class DaemonQueries:
 
     def _config_set_reply(self, query) -> tuple[bool, dict]:
         limit = self.cfg.query_max_bytes
-        size = len(query.payload) if query.payload is not None else 0
+        p = query.payload
+        try:
+            size = len(p) if p is not None else 0  # a Zenoh payload's length, without taking its bytes
+        except TypeError:  # a payload that does not tell it: its bytes, still before they are parsed
+            size = len(p.to_bytes())
         if size > limit:  # measured before it is read: not parsed, not validated, not echoed
             self.refused_requests += 1
             return False, {"error": f"config/set: a request of {size} bytes, above query_max_bytes = {limit}; not "
