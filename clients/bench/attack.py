@@ -1,15 +1,17 @@
 """``energyctl bench attack``: the realtime stack under the attacks of issue 31, each beside an unattacked control run.
 
 Each case is one realtime run of the paper's constant-load stack (controller, load, plant as processes on loopback,
-wall-clock pacing): from plant time ``at_s`` on, the attack; when it ends, the plant's sample time then is the attack's
-end. From the plant's own trace: how long until v is within +-2 % of v_ref for good after the attack ended (the issue's
-bar: <= 100 ms), v's largest deviation from the attack's start to the end of the run and from 100 ms after its end, the
-plant's counters over the run (``missed``: samples no command answered), and the controller's counts (rejected by reason, clock resyncs, refused requests, loop overruns).
+wall-clock pacing): from plant time ``at_s`` on, the attack; the attack's end in plant time is its start plus the wall
+time it took (the realtime plant's clock runs with the wall clock). From the plant's own trace: how long until v is
+within +-2 % of v_ref for good after the attack ended (the issue's bar: <= 100 ms), v's largest deviation from the
+attack's start to the end of the run and from 100 ms after its end, the plant's counters over the run (``missed``:
+samples no command answered; ``plant_late_samples``: the plant itself missed its instant, the host starved it), and
+the controller's counts (rejected by reason, clock resyncs, refused requests, loop overruns).
 
 Cases: ``control`` (nothing), ``forged`` (one measurement of a coming seq with t = 1e9, one of a seq 10^9 ahead),
 ``forged_restart`` (one of seq 0: a restart, which the daemon takes at once, then the plant's samples are a jump from
-it until they become the clock), ``config_10MB`` (a 10 MB config/set), ``flood`` (invalid measurement frames at ``flood_hz`` for
-``flood_s``: a third malformed, a third non-finite, a third a passed seq).
+it until they become the clock), ``config_10MB`` (a 10 MB config/set), ``flood`` (invalid measurement frames at
+``flood_hz`` for ``flood_s``: a third malformed, a third non-finite, a third a passed seq).
 """
 
 from __future__ import annotations

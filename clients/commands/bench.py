@@ -215,7 +215,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "--set defaults, an 8 ms loop-delay schedule), with status queries at 100 Hz")
     b.add_argument("--seconds", type=float, default=None,
                    help="recorder: paced run length (default 10); replay: log length (default 10); realtime: each "
-                        "run (default 2); network: simulated time per size (default 0.2); attack: the flood (default 10)")
+                        "run (default 2); network: simulated time per size (default 0.2); attack: the flood (default "
+                        "10)")
     b.add_argument("-n", type=int, default=None,
                    help="latency: round trips per target (default 3000); tick: ticks (default 20000); wake: waits "
                         "per setting (default 20000); middleware: puts and pings (default 3000); fuzz: bad frames "

@@ -44,7 +44,7 @@ def run_up(d, n=10, now=1):
     (meas(10, t=10 * T + 0.05), "meas.t: off the plant's clock"),  # 50 ms ahead of its seq's time
     (meas(10**9), "meas.seq: jump"),  # a jumped seq with its consistent t
     (meas(10**9, t=1e9), "meas.seq: jump"),
-])
+], ids=["future-t", "t-50ms-ahead", "seq-jump", "seq-and-t-jump"])
 def test_a_lone_forged_frame_is_not_the_new_clock(daemon, forged, reason):
     """Before: the forged frame was stepped on and answered, and every later real sample was held (t not after) or
     rejected (seq not increasing) until the plant restarted. Now it is rejected by name, unanswered, and the plant's

@@ -455,8 +455,8 @@ def test_the_neighbours_power_is_carried_forward_to_the_samples_time_by_its_rate
     h = d.cfg.neighbour_extrapolate_s
     assert 0.003 < h < d.cfg.neighbour_stale_s - 0.003
     d._max_gap = 10**6  # the samples below are on the plant's clock, the last one 2 neighbour_stale_s (20 s) later
-    for k, (t, t_j) in enumerate(((0.010, 0.010), (0.013, 0.010), (0.014, 0.015), (0.020 + h + 0.003, 0.020),
-                                  (0.034, 0.034 + h + 0.002), (0.040 + 2 * d.cfg.neighbour_stale_s, 0.015))):
+    for t, t_j in ((0.010, 0.010), (0.013, 0.010), (0.014, 0.015), (0.020 + h + 0.003, 0.020),
+                   (0.034, 0.034 + h + 0.002), (0.040 + 2 * d.cfg.neighbour_stale_s, 0.015)):
         nb.t = t_j
         d._tick(MEAS.encode(round(t / d.period_s), t, 15.0, 80.0, 80.15, 15.0), 1)  # on the plant's clock
     assert len(seen) == 6, (d.rejected, d.last_reject)
