@@ -11,19 +11,21 @@ the controller's counts (rejected by reason, clock resyncs, refused requests, lo
 Cases: ``control`` (nothing), ``forged`` (one measurement of a coming seq with t = 1e9, one of a seq 10^9 ahead),
 ``forged_restart`` (one of seq 0: a restart, which the daemon takes at once, then the plant's samples are a jump from
 it until they become the clock), ``config_10MB`` (a 10 MB config/set), ``flood`` (invalid measurement frames at
-``flood_hz`` for ``flood_s``: a third malformed, a third non-finite, a third a passed seq).
+``flood_hz`` for ``flood_s``: a third malformed, a third non-finite, a third a passed seq), ``stall`` (the controller
+process stopped with SIGSTOP for ``stall_s``, as the 10 MB request stalled it before: its samples resume far ahead).
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-CASES = ("control", "forged", "forged_restart", "config_10MB", "flood")
+CASES = ("control", "forged", "forged_restart", "config_10MB", "flood", "stall")
 
 
 def _forged(rig, pub, st: dict, restart: bool = False) -> None:
@@ -65,7 +67,7 @@ def _flood(rig, pub, st: dict, hz: float, seconds: float) -> dict:
 
 
 def run_case(case: str, scn, base: Path, rate_hz: float, delay: int, at_s: float, after_s: float, flood_hz: float,
-             flood_s: float) -> dict:
+             flood_s: float, stall_s: float = 0.6) -> dict:
     import zenoh
 
     from clients.bench.recovery import Rig, max_dev_pct, recovery_after
@@ -91,6 +93,10 @@ def run_case(case: str, scn, base: Path, rate_hz: float, delay: int, at_s: float
             out["request"] = _config_10mb(rig, pub, st)
         elif case == "flood":
             out["flood"] = _flood(rig, pub, st, flood_hz, flood_s)
+        elif case == "stall":
+            rig.signal("daemon", signal.SIGSTOP)
+            time.sleep(stall_s)  # the attack's length, not a synchronisation
+            rig.signal("daemon", signal.SIGCONT)
         # the attack's end in plant time: the realtime plant's clock runs with the wall clock from the status that
         # started it (a status now could show a forged sample)
         t_end = t_start + (time.monotonic() - w_start)
