@@ -5,7 +5,9 @@ Threads:
   polled with try_recv, no callbacks), steps the core, publishes du/dt; it records timing into
   preallocated arrays and never formats JSON, logs or serves queries;
 * three query threads answer ``status``, ``config`` and ``config/set`` from channels; a config set is
-  validated there and handed to the loop, which applies it at the next tick boundary;
+  validated there (its size first: query_max_bytes) and handed to the loop, which applies it at the next tick boundary;
+* with the sample trigger's queue, Zenoh's receiving thread refuses the measurements that can never be the next
+  sample before they are queued (_admit: counted by reason), so that a flood of them costs the loop nothing;
 * the main thread waits for SIGINT/SIGTERM and shuts down within one period.
 
 Lifecycle: configured -> active <-> inactive (du/dt = 0 is published) -> shutdown; active -> degraded
@@ -106,6 +108,7 @@ class Daemon(DaemonQueries):
                                for k, name in enumerate(Z.fields) if name in powers + rates)
         # measurements refused on receipt (the subscriber's thread, _admit): counted apart from the loop's own
         self.rx_rejected: dict[str, int] = {}
+        self._rx_lock = threading.Lock()  # Zenoh may call the subscriber from more than one of its threads
         self._rx_logged = 0  # rx rejections already summarised in an event
         self._z_seq = 0
         self.feas = FeasibilityMonitor(cfg.forecast_window_s, keep_windows=100, keep_recent=5)
@@ -557,8 +560,9 @@ class Daemon(DaemonQueries):
         return True
 
     def _count_rx(self, reason: str, detail: str) -> None:
-        rx = self.rx_rejected
-        rx[reason] = rx.get(reason, 0) + 1
+        with self._rx_lock:
+            rx = self.rx_rejected
+            rx[reason] = rx.get(reason, 0) + 1
         self.last_reject = f"{reason} ({detail})" if detail else reason
 
     def _out_of_range(self, v: tuple) -> tuple[str, str] | None:
