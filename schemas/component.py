@@ -253,6 +253,27 @@ class ComponentConfig(Named):
         default=1000.0, description="reject measurements with v above, V (answered with du/dt = 0)")
     meas_i_max_A: Amp = Field(
         default=1000.0, description="reject measurements with |i| or |i_load| above, A (answered with du/dt = 0)")
+    meas_u_max_V: Volt = Field(
+        default=1000.0, description="hold measurements with |u| above, V (answered with du/dt = 0)")
+    meas_max_gap_s: Annotated[float, Field(gt=0, le=60)] = Field(
+        default=0.1, description="a measurement whose seq is more than this many seconds of samples after the last "
+                                 "one stepped on is not taken as the next sample (rejected, no answer): a lone frame "
+                                 "is not the plant's new clock (docs/protocol.md, \"The plant's clock\")")
+    meas_clock_tolerance_s: Annotated[float, Field(gt=0, le=1)] | None = Field(
+        default=None, description="a measurement whose t differs from the last stepped one's t + (seq gap) x period by "
+                                  "more than this is not taken as the next sample (rejected, no answer), s; None: half "
+                                  "a period")
+    meas_resync_frames: Annotated[int, Field(ge=2, le=1000)] = Field(
+        default=3, description="after no sample was stepped on for the stale time (stale_periods, at least 50 ms), "
+                               "this many measurements in a row that agree with each other (seq and t as above) "
+                               "become the new clock: the core is re-initialised, as at a plant restart")
+    neighbour_P_max_W: WattPos | None = Field(
+        default=None, description="a neighbour's interaction message with |P_r_out|, |P_min| or |P_max| above this is "
+                                  "rejected (counted by field), its rates (P_r_out_dot, Qdot_r_out, P_dot_min, "
+                                  "P_dot_max) above this x loop.rate_hz too, W; None: meas_v_max_V x meas_i_max_A")
+    query_max_bytes: Annotated[int, Field(ge=1024, le=16 << 20)] = Field(
+        default=65536, description="a config/set request larger than this is refused before it is read (not parsed, "
+                                   "not echoed), bytes")
     stale_periods: Annotated[int, Field(ge=1, le=100000)] = Field(
         default=10, description="this many periods without a measurement -> degraded, du/dt = 0 "
                                 "(sample trigger: at least 50 ms)")

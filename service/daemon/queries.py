@@ -23,6 +23,15 @@ LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay
 REFUSED_EVENT_EVERY_NS = 1_000_000_000  # at most one recorded event and stderr line per this (all are counted)
 
 
+ERROR_TEXT_MAX = 300  # a refusal quotes at most this much of what it refuses (never the request back)
+
+
+def brief(text: str, limit: int = ERROR_TEXT_MAX) -> str:
+    """An error text cut to ``limit`` characters, saying how long it was: a refusal names the field and why, and never
+    echoes a large value back."""
+    return text if len(text) <= limit else f"{text[:limit]}... [{len(text)} characters, cut]"
+
+
 class DaemonQueries:
     """The query side of ``Daemon`` (a mixin: it reads the daemon's state, and writes only ``_pending`` and its
     count of refused config requests)."""
@@ -80,8 +89,9 @@ class DaemonQueries:
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
                             "recent": [v.__dict__ for v in self.feas.violations],
                             "forecast": self.forecaster.status() if self.forecaster is not None else None},
-            "rejected": dict(self.rejected), "last_reject": self.last_reject,
+            "rejected": self._rejected_counts(), "last_reject": self.last_reject,
             "config_refused": self.config_refused, "last_config_refused": self.last_config_refused,
+            "clock_resyncs": self.clock_resyncs, "refused_requests": self.refused_requests,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
             "late_command_ticks": self.late_ticks,
@@ -89,6 +99,13 @@ class DaemonQueries:
             "loop_delay": self._loop_delay(),
             "logging": self._logging_status(),
         }
+
+    def _rejected_counts(self) -> dict[str, int]:
+        """The loop's rejections and those refused on receipt (Daemon._admit), by reason."""
+        out = dict(self.rejected)
+        for k, n in list(self.rx_rejected.items()):
+            out[k] = out.get(k, 0) + n
+        return out
 
     def _loop_delay(self) -> dict:
         """The loop delay measured over this plant epoch's newest ticks (service/core/delay.py), against the delay the
@@ -134,6 +151,26 @@ class DaemonQueries:
                       "config_version": self.config_version}
 
     def _config_set_reply(self, query) -> tuple[bool, dict]:
+        limit = self.cfg.query_max_bytes
+        p = query.payload
+        try:
+            size = len(p) if p is not None else 0  # a Zenoh payload's length, without taking its bytes
+        except TypeError:  # a payload that does not tell it: its bytes, still before they are parsed
+            size = len(p.to_bytes())
+        if size > limit:  # measured before it is read: not parsed, not validated, not echoed
+            self.refused_requests += 1
+            ok, body = False, {"error": f"a request of {size} bytes, above query_max_bytes = {limit}; not read"}
+        else:
+            try:
+                ok, body = self._config_set(query)
+            except Exception as e:  # noqa: BLE001 - whatever the request made fail: refused, briefly
+                ok, body = False, {"error": f"set: {type(e).__name__}: {e}"}
+        if not ok:  # every refusal counted and logged once here (config_refused), its text never the request
+            body = {"error": brief(str(body.get("error", "")))}
+            self._refused("config/set", body["error"])
+        return ok, body
+
+    def _config_set(self, query) -> tuple[bool, dict]:
         try:
             req = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
             sets = req.get("set") if isinstance(req, dict) else None
@@ -143,8 +180,6 @@ class DaemonQueries:
             ok, body = False, {"error": str(e) if not isinstance(e, RecursionError) else "set: nested too deeply"}
         else:
             ok, body = self.apply_sets(sets)
-        if not ok:
-            self._refused("config/set", body["error"])
         return ok, body
 
     def apply_sets(self, sets: list[str]) -> tuple[bool, dict]:
@@ -174,5 +209,6 @@ class DaemonQueries:
             self._pending = (new, ev, new.model_dump_json())
             if not ev.wait(2.0):
                 return False, {"error": "not applied: the loop did not tick within 2 s"}
-        print(f"energyctl[{self.cfg.id}]: config set {sets} -> version {self.config_version}", file=sys.stderr)
+        print(f"energyctl[{self.cfg.id}]: config set {brief(str(sets))} -> version {self.config_version}",
+              file=sys.stderr)
         return True, {"applied": sets, "config_version": self.config_version, "controller": self.core.cfg.model_dump()}

@@ -22,6 +22,9 @@ typedef struct {
     double v_min, v_max, i_max;
     unsigned long long seq_limit;  /* accept(): seq < seq_limit, t_min <= t < t_limit (schemas.codec MEAS.ranges) */
     double t_min, t_limit;
+    double u_max;            /* accept(): |u| <= u_max */
+    long long max_gap;       /* accept(): seq - last_seq <= max_gap (samples) */
+    double period, clock_tol; /* accept(): |(t - last_t) - (seq - last_seq) * period| <= clock_tol */
 } TickWriter;
 
 static void put_u64(unsigned char *p, uint64_t q) { memcpy(p, &q, 8); }
@@ -39,21 +42,26 @@ static void TickWriter_release(TickWriter *self)
 
 /* TickWriter(kernel, hist_seq, hist_u, hist_r, cmd_format, cmd_magic, version, ring=None, ring_index=None, slots=0,
  *            group_id=0, group_format="", meas_format="", meas_magic=0, v_min=0, v_max=0, i_max=0,
- *            seq_limit=2^53, t_min=0, t_limit=2^32); seq_limit at most 2^62 (seq is an int64 here) */
+ *            seq_limit=2^53, t_min=0, t_limit=2^32, u_max=inf, max_gap=2^62, period=0, clock_tol=inf);
+ *            seq_limit at most 2^62 (seq is an int64 here) */
 static int TickWriter_init(TickWriter *self, PyObject *args, PyObject *kw)
 {
     static char *names[] = {"kernel", "hist_seq", "hist_u", "hist_r", "cmd_format", "cmd_magic", "version", "ring",
                             "ring_index", "slots", "group_id", "group_format", "meas_format", "meas_magic", "v_min",
-                            "v_max", "i_max", "seq_limit", "t_min", "t_limit", NULL};
+                            "v_max", "i_max", "seq_limit", "t_min", "t_limit", "u_max", "max_gap", "period",
+                            "clock_tol", NULL};
     PyObject *kern, *hs, *hu, *hr, *ring = Py_None, *widx = Py_None;
     const char *cmd_fmt, *group_fmt = "", *meas_fmt = "";
     int magic, version, group_id = 0, meas_magic = 0;
     long long slots = 0;
     double v_min = 0.0, v_max = 0.0, i_max = 0.0, t_min = 0.0, t_limit = 4294967296.0;
     unsigned long long seq_limit = 1ULL << 53;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLissidddKdd", names, &KernelType, &kern, &hs, &hu, &hr,
-                                     &cmd_fmt, &magic, &version, &ring, &widx, &slots, &group_id, &group_fmt,
-                                     &meas_fmt, &meas_magic, &v_min, &v_max, &i_max, &seq_limit, &t_min, &t_limit))
+    double u_max = HUGE_VAL, period = 0.0, clock_tol = HUGE_VAL;
+    long long max_gap = 1LL << 62;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLissidddKdddLdd", names, &KernelType, &kern, &hs, &hu,
+                                     &hr, &cmd_fmt, &magic, &version, &ring, &widx, &slots, &group_id, &group_fmt,
+                                     &meas_fmt, &meas_magic, &v_min, &v_max, &i_max, &seq_limit, &t_min, &t_limit,
+                                     &u_max, &max_gap, &period, &clock_tol))
         return -1;
     TickWriter_release(self);
     if (strcmp(cmd_fmt, CMD_FORMAT) != 0) {
@@ -72,6 +80,7 @@ static int TickWriter_init(TickWriter *self, PyObject *args, PyObject *kw)
         return -1;
     }
     self->seq_limit = seq_limit; self->t_min = t_min; self->t_limit = t_limit;
+    self->u_max = u_max; self->max_gap = max_gap; self->period = period; self->clock_tol = clock_tol;
     if (PyObject_GetBuffer(hs, &self->hseq, PyBUF_WRITABLE) < 0 || PyObject_GetBuffer(hu, &self->hu, PyBUF_WRITABLE)
         < 0 || PyObject_GetBuffer(hr, &self->hr, PyBUF_WRITABLE) < 0)
         return -1;
@@ -182,9 +191,10 @@ static PyObject *TickWriter_step(TickWriter *self, PyObject *const *args, Py_ssi
 
 /* accept(payload, last_seq, last_t) -> the measurement's values (seq, t, i, v, u, i_load), exactly as schemas.codec
  * MEAS.decode gives them, when the daemon's checks in _tick would take it as the next ordinary sample: well formed,
- * finite and admissible (seq < seq_limit, t in [t_min, t_limit)), v in [v_min, v_max], |i| and |i_load| <= i_max, seq
- * after last_seq >= 0 (not the first sample or a restart), t after last_t; else None, and the Python checks decide
- * (and name the reason). */
+ * finite and admissible (seq < seq_limit, t in [t_min, t_limit)), v in [v_min, v_max], |i| and |i_load| <= i_max,
+ * |u| <= u_max, seq after last_seq >= 0 (not the first sample or a restart) by at most max_gap, t after last_t and
+ * within clock_tol of last_t + (seq - last_seq) * period (the plant's clock: docs/protocol.md); else None, and the
+ * Python checks decide (and name the reason). */
 static PyObject *TickWriter_accept(TickWriter *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs != 3) {
@@ -211,11 +221,14 @@ static PyObject *TickWriter_accept(TickWriter *self, PyObject *const *args, Py_s
     for (int j = 0; j < 5; j++)
         if (!isfinite(x[j]))
             Py_RETURN_NONE;
-    if (!(self->v_min <= x[2] && x[2] <= self->v_max) || fabs(x[1]) > self->i_max || fabs(x[4]) > self->i_max)
+    if (!(self->v_min <= x[2] && x[2] <= self->v_max) || fabs(x[1]) > self->i_max || fabs(x[4]) > self->i_max
+        || !(fabs(x[3]) <= self->u_max))
         Py_RETURN_NONE;
     if (seq >= self->seq_limit || !(self->t_min <= x[0] && x[0] < self->t_limit))
         Py_RETURN_NONE;
-    if ((long long)seq <= last_seq || !(x[0] > last_t))
+    if ((long long)seq <= last_seq || !(x[0] > last_t) || (long long)seq - last_seq > self->max_gap)
+        Py_RETURN_NONE;
+    if (!(fabs((x[0] - last_t) - (double)((long long)seq - last_seq) * self->period) <= self->clock_tol))
         Py_RETURN_NONE;
     return Py_BuildValue("(Kddddd)", (unsigned long long)seq, x[0], x[1], x[2], x[3], x[4]);
 }
