@@ -255,6 +255,12 @@ class ComponentConfig(Named):
         default=1000.0, description="reject measurements with |i| or |i_load| above, A (answered with du/dt = 0)")
     meas_u_max_V: Volt = Field(
         default=1000.0, description="hold measurements with |u| above, V (answered with du/dt = 0)")
+    recovery_ramp_s: SecsPos | None = Field(
+        default=0.1, description="while measurements are held for v out of [meas_v_min_V, meas_v_max_V] and none was "
+                                 "stepped on for the stale time (stale_periods, at least 50 ms), the daemon answers "
+                                 "them with a recovery command that moves the source voltage u toward v_ref at "
+                                 "v_ref / recovery_ramp_s (at most the slew limit), landing on it (a soft start), "
+                                 "s; None: hold du/dt = 0 for as long as v is out of range")
     meas_max_gap_s: Annotated[float, Field(gt=0, le=60)] = Field(
         default=0.1, description="a measurement whose seq is more than this many seconds of samples after the last "
                                  "one stepped on is not taken as the next sample (rejected, no answer): a lone frame "

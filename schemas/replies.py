@@ -211,6 +211,8 @@ class StatusReply(Reply):
                     "local_reference_W")
     degraded_reason: str = Field(description="why the state is degraded (e.g. 'meas: stale'), '' otherwise")
     plant_restarts: int = Field(ge=0, description="times the plant's seq went back to 0 (the core was reset)")
+    recovery_ticks: int = Field(default=0, ge=0, description="measurements with v out of range answered with the "
+                                                            "recovery command (u ramped toward v_ref; recovery_ramp_s)")
     clock_resyncs: int = Field(default=0, ge=0, description="times samples off the clock the daemon held became its "
                                                           "new clock (meas_resync_frames after the stale time; the "
                                                           "core was reset)")

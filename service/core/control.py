@@ -160,6 +160,15 @@ def linearisation_rate(r_prev: float, u_p: float, T: float, u_min: float, u_max:
     return min(max(r_prev, r_lo), r_hi)
 
 
+def recovery_rate(u_V: float, u_target_V: float, ramp_V_per_s: float, T: float) -> float:
+    """The recovery command (V/s) while the terminal voltage is out of its measurement range: the source voltage u
+    (V) moved toward u_target (V) at most ramp (V/s), landing on it within the period T (s):
+    du/dt = clip((u_target - u) / T, -ramp, ramp). It reads only u, which is in range, never the implausible v: a
+    bus left at 0 V (a stall, a discharged start) is brought back up like a soft start, and a wrong v costs nothing
+    but a slow move of u toward the voltage it would be regulated to anyway."""
+    return min(max((u_target_V - u_V) / T, -ramp_V_per_s), ramp_V_per_s)
+
+
 def nested_output(i: float, v: float, u: float, P: float, P_ff: float, Pdot: float, R: float, L: float, C: float,
                   v_ref: float, K_P: float, K_E: float, i_max: float) -> tuple[float, float, float, float, bool]:
     """The nested law's output sigma (W/s) at the state (i A, v V, u V), with the load power P (W) the terminal

@@ -31,6 +31,7 @@ from schemas.codec import CMD, MEAS, VERSION, DecodeError, Z
 from schemas.component import ComponentConfig
 from schemas.scenario import ControllerConfig
 from service.core import core_metadata, effective_gain, make_core
+from service.core.control import recovery_rate
 from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from service.core.interaction import outgoing_power_at as _outgoing_power_at
 from service.daemon.bus import key, latest, open_session, publisher, queued, serve_queries
@@ -100,6 +101,8 @@ class Daemon(DaemonQueries):
         self._chain: tuple[int, float] | None = None
         self._chain_n = 0
         self.clock_resyncs = 0
+        self.recovery_ticks = 0  # samples with v out of range answered by the recovery command (_hold)
+        self._recovering_since = -1  # _accepted_ns when the current recovery began (one event per recovery)
         self.refused_requests = 0  # config/set requests above query_max_bytes
         # a neighbour's plausible powers (W) and rates (W/s): from the config (neighbour_P_max_W, else v_max x i_max)
         P_max = cfg.neighbour_P_max_W if cfg.neighbour_P_max_W is not None else cfg.meas_v_max_V * cfg.meas_i_max_A
@@ -529,15 +532,32 @@ class Daemon(DaemonQueries):
             t = ls[1] if ls else 0.0
             self.recorder.offer(self.t_ev, t, (t, max(self._last_seq, 0), "degraded", why))
 
-    def _hold(self, v: tuple, now: int, reason: str, detail: str = "") -> None:
+    def _hold(self, v: tuple, now: int, reason: str, detail: str = "", recover: bool = False) -> None:
         """A rejected measurement: counted, recorded, answered with du/dt = 0; the core never sees it. Nor is it
         told of the hold (replay could not repeat that: rejected samples are not in the log), so for this sample's
         period it predicts the plan sent with the previous answer: one period of model error, against bit-exact
-        replay."""
+        replay.
+
+        ``recover`` (v out of range): once no sample was stepped on for the stale time, the answer is the recovery
+        command instead (service.core.control.recovery_rate: u toward v_ref at v_ref / recovery_ramp_s), so a bus
+        left out of range (0 V after a stall, a discharged start) is brought back into range and then regulated
+        (its first sample in range a resync or the first sample); a glitch shorter than the stale time is held."""
         self._reject(reason, now, detail)
-        self.cmd_pub.put(CMD.encode(v[0], v[1], 0.0, 0.0, True))
-        self.last_cmd = (v[0], v[1], 0.0, 0.0, True)
-        self._remember(v[0], v[4], 0.0)
+        du = 0.0
+        ramp_s = self.cfg.recovery_ramp_s
+        if recover and ramp_s is not None and now - self._accepted_ns >= self._resync_ns:
+            ctl = self.core.cfg
+            ramp = min(ctl.v_ref_V / ramp_s, ctl.limits.du_dt_max_V_per_s)
+            du = recovery_rate(v[4], ctl.v_ref_V, ramp, self.period_s)
+            if self._recovering_since != self._accepted_ns:
+                self._recovering_since = self._accepted_ns  # one event per recovery
+                if self.recorder is not None:
+                    self.recorder.offer(self.t_ev, v[1], (v[1], v[0], "recovery", f"{reason} ({detail}): u ramped "
+                                                                                  f"toward v_ref at {ramp:g} V/s"))
+            self.recovery_ticks += 1
+        self.cmd_pub.put(CMD.encode(v[0], v[1], du, du, True))
+        self.last_cmd = (v[0], v[1], du, du, True)
+        self._remember(v[0], v[4], du)
 
     def _remember(self, seq: int, u: float, du: float) -> None:
         j = seq & (HIST - 1)
@@ -625,7 +645,7 @@ class Daemon(DaemonQueries):
             return None
         bad = self._out_of_range(v)
         if bad is not None:
-            return self._hold(v, now, *bad)
+            return self._hold(v, now, *bad, recover=bad[0] == "meas.v: out of range")
         if restart:  # the plant restarted: its history is not ours any more
             self.core.reset()
             self._last_seq = -1

@@ -91,7 +91,7 @@ class DaemonQueries:
                             "forecast": self.forecaster.status() if self.forecaster is not None else None},
             "rejected": self._rejected_counts(), "last_reject": self.last_reject,
             "config_refused": self.config_refused, "last_config_refused": self.last_config_refused,
-            "clock_resyncs": self.clock_resyncs, "refused_requests": self.refused_requests,
+            "clock_resyncs": self.clock_resyncs, "recovery_ticks": self.recovery_ticks, "refused_requests": self.refused_requests,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
             "late_command_ticks": self.late_ticks,
