@@ -12,12 +12,10 @@ constant-power load, resistive below 5 V), its answer applied over the next peri
 from __future__ import annotations
 
 import pytest
-
 from conftest import ROOT
 
 from schemas.codec import MEAS
-from schemas.scenario import load_scenario
-from schemas.scenario import PlantConfig, ProfileConfig  # noqa: I001
+from schemas.scenario import PlantConfig, ProfileConfig, load_scenario
 from service.plant.profiles import Profile
 from service.plant.rlc import RLCPlant
 
