@@ -273,7 +273,8 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
             "first_fallback_t_s": (float(t[np.argmax(row["mode"] == FALLBACK)])
                                    if "mode" in row and (row["mode"] == FALLBACK).any() else None),
             "final_mode": MODES[int(row["mode"][-1])] if n and "mode" in row else None,
-            "feasibility_violations": res.violations.get(s, 0),
+            # null where the run cannot know them: a live rig's trace (the daemons' monitors count them, in status)
+            "feasibility_violations": res.violations.get(s, 0) if ctls else None,
         }
     # steady state: the 100 ms before each event and before the end, where at least 50 ms passed since the last one
     marks = sorted({e.t for e in res.events} | {float(t[-1]) + T if n else 0.0})

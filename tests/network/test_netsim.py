@@ -374,3 +374,15 @@ def test_a_bus_no_source_reaches_is_a_blackout_not_a_divergence():
     for s in ("S1", "S2"):
         assert 0.5 * 80.0 < res.sources[s]["v"][-1] < 2.0 * 80.0
     assert _run("two-source-trip", "timing.duration_s=0.6").metrics["unsupplied_s"] == {}  # one trip: still fed
+
+
+def test_a_trace_without_the_controllers_reports_feasibility_violations_as_unknown():
+    """A live rig's trace (no controllers: the daemons' monitors count excursions) reported 0 feasibility violations
+    per source, a count it cannot know; now null (the offline run, which has them, still counts)."""
+    from service.netsim import network_metrics
+
+    net = load_network(SCENARIOS / "network" / "two-source.toml", ["timing.duration_s=0.05", "events=[]"])
+    res = run_network(net)
+    assert all(isinstance(m["feasibility_violations"], int) for m in res.metrics["sources"].values())
+    live = network_metrics(res, None, None)
+    assert all(m["feasibility_violations"] is None for m in live["sources"].values()), live["sources"]
