@@ -75,6 +75,7 @@ class NetworkRig:
         self.peers_up: set[str] = set()
         self._lost_at: dict[str, float] = {}  # monotonic s when each token went last
         self._awaited: set[str] = set()  # cut off: the processes whose tokens went with the cut
+        self._resent_k = -1  # the last sample resent after a cut
         self.cut_off_since: float | None = None  # monotonic s: its own session lost the others (module docstring)
         self.cut_off_s = 0.0  # wall time spent cut off, all outages
         self._frames: tuple = (b"", [])  # the last sample's grid and measurement frames (resent after a cut)
@@ -281,6 +282,7 @@ class NetworkRig:
                 if self.answered[name] < k:
                     pub.put(m)
             self.counters["resent"] += 1
+            self._resent_k = k
 
     def _decode(self, name: str, payload: bytes) -> tuple | None:
         try:
@@ -321,7 +323,8 @@ class NetworkRig:
                         continue
                     if time.monotonic() >= deadline:
                         self.counters["timeouts"] += 1
-                        self.lagging.add(name)
+                        if k != self._resent_k:  # a resent sample it had answered into the cut: no answer comes,
+                            self.lagging.add(name)  # and it is not behind (a lagging source is not waited for)
                         break
                     continue
                 c = self._decode(name, payload)

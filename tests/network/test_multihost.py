@@ -387,7 +387,9 @@ def test_the_rig_rides_out_its_own_router_restart(network):
     """The rig's own router (the hub) restarted under a lockstep run: the rig saw every source's token go at once
     and stepped thousands of samples with no commands until the network diverged (bus 40-117 V), then exited 0. Now
     it knows itself cut off: it takes no sample until the tokens are back, sends the sample they may have missed
-    again and goes on; the network does not diverge and the rig exits 0 (a diverged one exits 1)."""
+    again and goes on; the network does not diverge and the rig exits 0 (a diverged one exits 1). (A first version
+    marked both sources lagging when they did not answer the resent sample, which they had answered into the cut:
+    the rig then ran on without waiting, flooded the routers, and the network diverged, 2 of 3 runs.)"""
     net, hosts = network, network.hosts
     net.write_profile()
     for h in HOSTS:
@@ -414,18 +416,12 @@ def test_the_rig_rides_out_its_own_router_restart(network):
     c = res["counters"]
     assert c["cut_off"] >= 1 and c["resent"] >= 1, (c, net.log("rig"))  # it knew itself cut off, and came back
     assert rc == (1 if res["metrics"]["diverged"] else 0), (rc, net.log("rig"))  # a diverged network exits 1
-    cut = min(res["last_answered"][s] for s in SOURCES)
-    if res["metrics"]["diverged"] and cut < res["samples"] - 100:
-        # seen on a shared VM on 2026-12-04 (2 of 2 runs): after the hub's restart the tokens came back and the
-        # rig's resent sample reached both sources (each rejected it: they had answered it into the cut), but both
-        # daemons' loops stopped ticking 4 samples after the cut (no lockstep timeout counted, their measurement
-        # queues full) and no command reached the rig again: not the rig's stepping through its cut (docs/limits.md)
-        pytest.xfail(f"no command reached the rig after its router's restart (last answered: {cut})")
     assert not res["metrics"]["diverged"], (res["metrics"].get("diverged_why"), c, net.log("rig"))
     assert res["samples"] == 3000 and before["t"] < 3.0
-    # every sample after the cut was answered by both sources (a timeout is one sample held, not thousands)
+    # every sample after the cut was answered by both sources; at most one timeout each: a source that had answered
+    # the resent sample into the cut rejects it as passed (no answer), and is not taken for lagging behind
     assert all(res["last_answered"][s] == res["samples"] - 1 for s in SOURCES), res["last_answered"]
-    assert c["timeouts"] <= 2, c
+    assert c["timeouts"] <= len(SOURCES), c
 
 
 # ---------------------------------------------------------------------------------------------- without root
