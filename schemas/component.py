@@ -192,6 +192,9 @@ class NetworkRole(Strict):
         default=None, description="from this sample time on (s), while its breaker is open, it asks the coordinator to "
                                   "connect (the plug-in handshake; again after connect_retry_s when refused or "
                                   "tripped); none: it never asks")
+    connected_at_start: bool = Field(default=False, description="the scenario has it connected from the start: a "
+                                     "daemon whose first allocation shows its breaker open (restarted after a "
+                                     "trip) asks to connect by itself, connect_at_s unset")
     connect_retry_s: Annotated[float, Field(gt=0)] = Field(default=0.5, description="sample time between two "
                                                                                     "connect requests, s")
     v_ref_min_V: Annotated[float, Field(gt=0)] | None = Field(default=None, description="an allocation whose v_ref "
