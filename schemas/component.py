@@ -179,6 +179,10 @@ class NetworkRole(Strict):
     fallback_idle_power_W: Annotated[float, Field(ge=0)] | None = Field(
         default=None, description="in fallback it idles below this |own terminal power| instead, W (None: "
                                   "idle_power_W)")
+    fallback: Literal["last-allocation", "own-terminal"] = Field(
+        default="last-allocation", description="a stale allocation: keep its last P^{r,in} (plus the change of its own "
+                                               "terminal's power since; the nested law), or follow its own terminal's "
+                                               "power alone")
     resume_ramp_s: Annotated[float, Field(ge=0)] = Field(default=0.0, description="after a fallback, from its own "
                                                                                   "terminal's power to the allocation "
                                                                                   "linearly over this long, s")

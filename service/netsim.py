@@ -86,11 +86,12 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     ns = len(names)
     cfgs = list(net.sources.values())
     ctls, feas = [], []
-    for src in cfgs:
+    for name, src in zip(names, cfgs, strict=True):
         core = make_core(src.controller, src.model_params(), T, d, impl)
         ctls.append(SourceController(core, T, idle_power_W=lay.idle_power_W, idle_tau_s=lay.idle_tau_s,
                                      hold_when_open=lay.open_idle == "hold", resume_ramp_s=lay.resume_ramp_s,
-                                     fallback_idle_power_W=lay.fallback_idle_power_W))
+                                     fallback_idle_power_W=lay.fallback_idle_power_W,
+                                     fallback=net.fallback_of(name)))
         feas.append(FeasibilityMonitor(lay.window_s))
     config_events: dict[str, list] = {name: [] for name in names}  # the layer's v_ref moves: (t, seq, v_ref V)
     ranges: dict[str, list] = {name: [] for name in names}  # per source: (window, Z^{r,in}) as set

@@ -44,6 +44,9 @@ from service.daemon.neighbours import Neighbour
 from service.forecast import forecast_outgoing
 
 
+FALLBACK_REFERENCE = {"last-allocation": "last allocation (fallback)", "own-terminal": "own terminal (fallback)"}
+
+
 class NetworkSourceDaemon(Daemon):
     """See the module docstring."""
 
@@ -55,7 +58,8 @@ class NetworkSourceDaemon(Daemon):
         self.ctl = SourceController(self.core, self.period_s, idle_power_W=self.role.idle_power_W,
                                     idle_tau_s=self.role.idle_tau_s,
                                     hold_when_open=self.role.open_idle == "hold", resume_ramp_s=self.role.resume_ramp_s,
-                                    fallback_idle_power_W=self.role.fallback_idle_power_W)
+                                    fallback_idle_power_W=self.role.fallback_idle_power_W,
+                                    fallback=self.role.fallback)
         self.alloc = Neighbour(self.role.coordinator, None)
         self.alloc_vals: tuple | None = None  # the newest allocation's values (schemas.codec.ALLOC order)
         self.lines: list[Neighbour] = []
@@ -198,7 +202,7 @@ class NetworkSourceDaemon(Daemon):
             du = du_next = 0.0
             stepped = False
             self.core.hold(seq)
-        self.reference = "allocation" if fresh else "own terminal (fallback)"
+        self.reference = "allocation" if fresh else FALLBACK_REFERENCE[role.fallback]
         if self._connect_seq is not None and not connected:
             self._maybe_connect(seq, t)
         cmd = CMD.encode(seq, t, du, du_next, limited)

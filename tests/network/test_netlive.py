@@ -165,7 +165,7 @@ def test_the_sources_fall_back_without_the_coordinator_and_it_resumes(tmp_path, 
             # the sources: their allocation goes stale within 10 ms of sample time, and they follow their terminals
             for s in ("S1", "S2"):
                 st = live.wait_until(z, s, lambda st: st["network"]["allocation"]["stale"], 30)
-                assert st["reference"] == "own terminal (fallback)"
+                assert st["reference"] == "last allocation (fallback)"
             v_refs = {s: live.query(z, s)["network"]["v_ref_V"] for s in ("S1", "S2")}
             live.start_coordinator()
             co = live.wait_until(z, "coordinator", lambda st: st["seq"] > 0, 30)

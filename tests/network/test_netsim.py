@@ -386,3 +386,25 @@ def test_a_trace_without_the_controllers_reports_feasibility_violations_as_unkno
     assert all(isinstance(m["feasibility_violations"], int) for m in res.metrics["sources"].values())
     live = network_metrics(res, None, None)
     assert all(m["feasibility_violations"] is None for m in live["sources"].values()), live["sources"]
+
+
+def test_without_the_coordinator_the_sources_keep_their_last_shares():
+    """The layer's messages silent from just after S3's plug-in (2:1:1 of 2.4 kW: 1200, 600, 600 W). Following their
+    own terminals alone, the sources split by their lines and v_refs, and S3, whose v_ref the layer had not moved
+    yet, kept 228 of its 600 W (across hosts S2 fell so below 300 W, idled, and 2:1 became 90:10). Keeping the last
+    allocation (the default), each keeps its share, the bus within +-2 %."""
+    silent = ["links.*.silent_from_s=4.06", "timing.duration_s=6"]
+
+    def powers(*extra):
+        r = _run("realtime", *silent, *extra)
+        late = r.t >= 5.0
+        return {s: float(r.sources[s]["P"][late].mean()) for s in ("S1", "S2", "S3")}, r
+
+    kept, r = powers()
+    total = sum(kept.values())
+    for s, share in (("S1", 0.5), ("S2", 0.25), ("S3", 0.25)):
+        assert kept[s] / total == pytest.approx(share, abs=0.03), kept
+    assert all(m["final_mode"] == "fallback" for m in r.metrics["sources"].values()), r.metrics["sources"]
+    assert np.abs(r.buses["bus"][r.t >= 4.2] - 80.0).max() < 0.02 * 80.0
+    own, _ = powers('layer.fallback="own-terminal"')
+    assert own["S3"] / sum(own.values()) < 0.15, own  # what the own-terminal fallback did
