@@ -102,7 +102,9 @@ class SourceController:
         if fresh:
             self._P_last = P_in_W
         power = abs(P_in_W)
-        floor = self.idle_power_W if fresh else self.fallback_idle_power_W
+        # the fallback floor is the own-terminal law's (near zero current the paper law's mapping rang up): a source
+        # keeping its last share keeps the ordinary one (decision 0032)
+        floor = self.idle_power_W if fresh or self.fallback == "last-allocation" else self.fallback_idle_power_W
         if not connected:
             idle = True
         elif self.idle:
