@@ -408,3 +408,7 @@ def test_without_the_coordinator_the_sources_keep_their_last_shares():
     assert np.abs(r.buses["bus"][r.t >= 4.2] - 80.0).max() < 0.02 * 80.0
     own, _ = powers('layer.fallback="own-terminal"')
     assert own["S3"] / sum(own.values()) < 0.15, own  # what the own-terminal fallback did
+    # silent 20 ms into S3's plug-in ramp: it keeps about where the ramp was, below the 300 W fallback floor of the
+    # own-terminal law, and does not idle (that floor is the paper law's hazard, not the kept share's)
+    r = _run("realtime", "links.*.silent_from_s=4.02", "timing.duration_s=5")
+    assert r.metrics["sources"]["S3"]["final_mode"] == "fallback", r.metrics["sources"]["S3"]
