@@ -303,6 +303,8 @@ class NetworkRig:
             _, q = self.cmd[name]
             got = None
             while True:
+                if self.stop.is_set() or self.failure:
+                    break
                 if self.cut_off_since is not None:  # its own outage, not theirs: wait it out, resend, wait anew
                     self._ride_out_cut(k, resend=True)
                     deadline = time.monotonic() + self.cfg.lockstep_timeout_s
