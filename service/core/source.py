@@ -15,8 +15,10 @@ of the design notes come around it, and this wrapper answers them without touchi
   carried along the change of its own terminal power since (P_own + P^{r,in}_last - P_own at the first stale step):
   its share is kept and a load change is taken up at its terminal, as the own-terminal law does; with
   ``"own-terminal"`` to the source's own terminal power, -v i_out from its own sample alone (the sources then split
-  by their lines and v_refs: a source plugged in just before kept 228 of its 600 W, docs/decisions/0032); in fallback it idles below ``fallback_idle_power_W`` (default:
-  the idle power), as a source left near zero current there rings up the mapping's fast mode. Fresh again, it
+  by their lines and v_refs: a source plugged in just before kept 228 of its 600 W, docs/decisions/0032). Following
+  its own terminal it idles below ``fallback_idle_power_W`` (default: the idle power), as a source left near zero
+  current there rings up the paper law's mapping's fast mode; keeping its share it keeps ``idle_power_W``. Fresh
+  again, it
   moves from that power to P^{r,in} linearly over ``resume_ramp_s`` (P = P_own + (P^{r,in} - P_own) n / N, n the
   steps since, N = resume_ramp_s / T): the sources' powers then come back to their shares together, not in a step.
 * **light load** is the core's i_floor (``controller.limits.i_floor_A``): the notes measured a 2 A floor

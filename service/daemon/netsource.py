@@ -43,7 +43,6 @@ from service.daemon.forecast_worker import start_background_pool
 from service.daemon.neighbours import Neighbour
 from service.forecast import forecast_outgoing
 
-
 FALLBACK_REFERENCE = {"last-allocation": "last allocation (fallback)", "own-terminal": "own terminal (fallback)"}
 
 
