@@ -24,6 +24,10 @@ def build_parser() -> Parser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # run as a program: started by another energyctl (clients.live.Processes), end with it
+        from service.priority import die_with_parent_from_env
+
+        die_with_parent_from_env()
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -198,7 +198,12 @@ class Processes:
             self._old_term = signal.signal(signal.SIGTERM, _exit_on_term)
 
     def start(self, name: str, args: list[str], **kw) -> subprocess.Popen:
+        """``energyctl ARGS`` as a child that ends with this process, even a SIGKILLed one (the child's main asks for
+        it: service.priority.die_with_parent_from_env)."""
+        from service.priority import parent_env
+
         cmd = [sys.executable, "-m", "clients.cli", *args]
+        kw["env"] = {**(kw.get("env") or os.environ), **parent_env()}
         if self.out_dir is None:
             p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
         else:

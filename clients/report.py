@@ -23,7 +23,12 @@ class ReportError(RuntimeError):
 
 
 def load_series(path: str | Path) -> dict:
-    s = scan(path, keep_messages=True)
+    from service.logio.reader import LogError
+
+    try:
+        s = scan(path, keep_messages=True)
+    except LogError as e:  # empty or not MCAP
+        raise ReportError(str(e)) from None
     cols: dict[str, dict[str, list]] = {}
     for m in s["messages"]:
         leaf = s["channels"][m.channel_id].topic.rsplit("/", 1)[-1]
@@ -51,7 +56,8 @@ def load_series(path: str | Path) -> dict:
     if meta.get("scenario", {}).get("kind") == "network":  # v_ref lives per source there
         v_ref = meta["scenario"].get("nominal_v_V", v_ref)
     return {"path": str(path), "name": Path(path).stem, "series": series, "meta": meta, "v_ref": v_ref,
-            "complete": s["complete"], "forecasts": forecasts}
+            "complete": s["complete"], "forecasts": forecasts,
+            "damage": [d.describe() for d in s["damage"]]}
 
 
 def state(log: dict) -> dict:
@@ -198,7 +204,8 @@ def report(paths: list[str], out_dir: str) -> dict:
                 "metrics from the measurements the controller saw (noisy; a plant's own log has the true state)")
 
     lines = ["# energyctl report", "", *(f"- `{lg['path']}`: {source(lg)}" + (
-                 "" if lg["complete"] else " (cut off; recovered up to its last complete chunk)") for lg in logs),
+                 "" if lg["complete"] else " (cut off; recovered up to its last complete chunk)")
+                 + "".join(f" (CORRUPT, skipped: {d})" for d in lg.get("damage", ())) for lg in logs),
              "", "| log | " + " | ".join(keys) + " |", "|" + " --- |" * (len(keys) + 1)]
     for name, m in metrics:
         lines.append(f"| {name} | " + " | ".join(_fmt(m.get(k)) for k in keys) + " |")

@@ -14,7 +14,8 @@ router to that client). Roles, each a Zenoh user whose name is its identity:
 * monitor: the operator without ``config/set`` (read-only dashboards).
 
 Everyone may watch liveliness tokens. A client without credentials, or with wrong ones, is refused at
-connect; a message the ACL denies is dropped by the router (the sender sees no error).
+connect; a message the ACL denies is dropped by the router (the sender sees no error). ``energyctl router`` logs and
+counts both from Zenoh's own log (``run_router(audit=True)``, clients/refusals.py).
 
 With ``tls=True`` the router listens on ``tls/`` endpoints with mutual TLS: a private CA (made here with the
 ``openssl`` command) signs the router's certificate and one client certificate per user whose common name
@@ -499,14 +500,37 @@ def client_zenoh(endpoint: str, user: str, password_file: str | Path, tls_dir: s
 
 
 def run_router(config_file: str | None, listen: list[str], ready: threading.Event | None = None,
-               stop: threading.Event | None = None) -> int:
-    """A Zenoh router in this process until SIGINT/SIGTERM (or ``stop``). Prints one line when listening."""
+               stop: threading.Event | None = None, audit: bool = False, status_key: str | None = None) -> int:
+    """A Zenoh router in this process until SIGINT/SIGTERM (or ``stop``). Prints one line when listening.
+
+    audit (``energyctl router`` by default; once per process, it takes over the process's stdout): Zenoh's log of
+    refused logins and access-control denials (clients/refusals.py) is turned on, with RUST_LOG's directives if
+    set, else refusals.DIRECTIVES; each refusal is printed to stderr (repeats summarised) and counted. status_key:
+    a queryable there answers those counts (``{"router": ..., "refusals": RefusalLog.status()}``)."""
     import sys
 
-    from service.daemon.bus import open_session
+    from service.daemon.bus import open_session, serve_queries
 
+    log = None
+    if audit:
+        import zenoh
+
+        from clients.refusals import DIRECTIVES, RefusalLog, capture_stdout
+
+        log = RefusalLog()
+        capture_stdout(log)
+        zenoh.init_log_from_env_or(DIRECTIVES)
     z = ZenohConfig(mode="router", listen=listen, config_file=config_file)
     session = open_session(z)
+    served = None
+    if status_key:
+        import zenoh
+
+        q = session.declare_queryable(status_key, zenoh.handlers.FifoChannel(16))
+        body = {"router": str(session.info.zid()), "audit": log is not None}
+        served = (q, threading.Thread(target=serve_queries, name="router-status", daemon=True, args=(
+            q, status_key, lambda _q: (True, {**body, "refusals": log.status() if log else None}))))
+        served[1].start()
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -516,12 +540,17 @@ def run_router(config_file: str | None, listen: list[str], ready: threading.Even
         from service.daemon.bus import zenoh_config
 
         acl = "on" if json.loads(zenoh_config(z).get_json("access_control/enabled")) else "off"
-    print(f"energyctl router: listening on {listen or 'the config file endpoints'}, access control {acl}",
+    print(f"energyctl router: listening on {listen or 'the config file endpoints'}, access control {acl}, "
+          f"refusals {'logged' if log else 'not logged'}" + (f", status on {status_key}" if status_key else ""),
           file=sys.stderr, flush=True)
     if ready is not None:
         ready.set()
     try:
         stop.wait()
     finally:
-        session.close()
+        session.close()  # closes the status channel too: its thread ends
+        if log is not None:
+            st = log.status()
+            print(f"energyctl router: refused {st['logins_refused']} login(s), denied {st['acl_denied']} message(s)",
+                  file=sys.stderr, flush=True)
     return 0

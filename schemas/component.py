@@ -10,15 +10,24 @@ from pydantic import AfterValidator, BaseModel, Field, ValidationError, field_va
 
 from schemas.scenario import (
     AcceptanceConfig,
+    Amp,
     CircuitParams,
     ControllerConfig,
     LoadConfig,
+    Margin,
     OutgoingForecastConfig,
     PlantConfig,
     ProfileConfig,
     ScenarioError,
+    Secs,
+    SecsPos,
+    Seed,
     SensorConfig,
     Strict,
+    Volt,
+    Watt,
+    WattNonNeg,
+    WattPos,
     apply_overrides,
     format_validation_error,
     read_toml,
@@ -93,7 +102,7 @@ def cpus_exist(v: list[int] | None) -> list[int] | None:
 
 
 # a CPU list for sched_setaffinity (None: any CPU)
-CpuList = Annotated[list[Annotated[int, Field(ge=0)]] | None, AfterValidator(cpus_exist)]
+CpuList = Annotated[list[Annotated[int, Field(ge=0, le=1023)]] | None, AfterValidator(cpus_exist)]
 
 
 class Named(Strict):
@@ -170,43 +179,43 @@ class NetworkRole(Strict):
                                                                 "PREFIX/ID/alloc, connect requests go to "
                                                                 "PREFIX/COORDINATOR/connect")
     lines: list[str] = Field(default=[], description="the lines at its terminal: neighbours on PREFIX/LINE/z/ID")
-    idle_power_W: Annotated[float, Field(ge=0)] = Field(default=30.0, description="below this |P^{r,in}| (and "
+    idle_power_W: WattNonNeg = Field(default=30.0, description="below this |P^{r,in}| (and "
                                                                                   "whenever disconnected) it holds "
                                                                                   "its voltage (idle mode), W")
-    idle_tau_s: Annotated[float, Field(gt=0)] = Field(default=0.005, description="idle mode's time constant, s")
+    idle_tau_s: SecsPos = Field(default=0.005, description="idle mode's time constant, s")
     open_idle: Literal["droop", "hold"] = Field(default="droop", description="disconnected: the idle droop law, or "
                                                                              "hold u")
-    fallback_idle_power_W: Annotated[float, Field(ge=0)] | None = Field(
+    fallback_idle_power_W: WattNonNeg | None = Field(
         default=None, description="in fallback it idles below this |own terminal power| instead, W (None: "
                                   "idle_power_W)")
     fallback: Literal["last-allocation", "own-terminal"] = Field(
         default="last-allocation", description="a stale allocation: keep its last P^{r,in} (plus the change of its own "
                                                "terminal's power since; the nested law), or follow its own terminal's "
                                                "power alone")
-    resume_ramp_s: Annotated[float, Field(ge=0)] = Field(default=0.0, description="after a fallback, from its own "
+    resume_ramp_s: Secs = Field(default=0.0, description="after a fallback, from its own "
                                                                                   "terminal's power to the allocation "
                                                                                   "linearly over this long, s")
-    stale_s: Annotated[float, Field(gt=0)] = Field(default=0.01, description="an allocation older than this (sample "
+    stale_s: SecsPos = Field(default=0.01, description="an allocation older than this (sample "
                                                                              "time) is stale: the source falls back "
                                                                              "to its own terminal power, s")
-    extrapolate_s: Annotated[float, Field(ge=0)] = Field(default=0.002, description="a late allocation is carried "
+    extrapolate_s: Secs = Field(default=0.002, description="a late allocation is carried "
                                                                                     "forward along its rate by at "
                                                                                     "most this, s")
-    connect_at_s: Annotated[float, Field(ge=0)] | None = Field(
+    connect_at_s: Secs | None = Field(
         default=None, description="from this sample time on (s), while its breaker is open, it asks the coordinator to "
                                   "connect (the plug-in handshake; again after connect_retry_s when refused or "
                                   "tripped); none: it never asks")
     connected_at_start: bool = Field(default=False, description="the scenario has it connected from the start: a "
                                      "daemon whose first allocation shows its breaker open (restarted after a "
                                      "trip) asks to connect by itself, connect_at_s unset")
-    connect_retry_s: Annotated[float, Field(gt=0)] = Field(default=0.5, description="sample time between two "
+    connect_retry_s: SecsPos = Field(default=0.5, description="sample time between two "
                                                                                     "connect requests, s")
-    v_ref_min_V: Annotated[float, Field(gt=0)] | None = Field(default=None, description="an allocation whose v_ref "
+    v_ref_min_V: Volt | None = Field(default=None, description="an allocation whose v_ref "
                                                                                       "is below this is refused "
                                                                                       "(counted), V")
-    v_ref_max_V: Annotated[float, Field(gt=0)] | None = Field(default=None, description="an allocation whose v_ref "
+    v_ref_max_V: Volt | None = Field(default=None, description="an allocation whose v_ref "
                                                                                       "is above this is refused, V")
-    P_max_W: Annotated[float, Field(gt=0)] = Field(default=1e6, description="an allocation whose |P^{r,in}| is above "
+    P_max_W: WattPos = Field(default=1e6, description="an allocation whose |P^{r,in}| is above "
                                                                             "this is refused (counted), W")
 
 
@@ -230,38 +239,59 @@ class ComponentConfig(Named):
     interaction_rate_hz: Annotated[float, Field(gt=0, le=20000)] = Field(
         default=1000.0, description="rate of this component's interaction messages on .../z, Hz (every "
                                     "round(loop.rate_hz / this) ticks)")
-    forecast_window_s: Annotated[float, Field(gt=0)] = Field(
+    forecast_window_s: SecsPos = Field(
         default=1.0, description="length T_s of the windows the interaction ranges and forecasts are for, s")
     forecast: OutgoingForecastConfig = Field(
         default=OutgoingForecastConfig(enabled=True),
         description="forecast this component's Z^{r,out} for each window the neighbours announce, publish it on "
                     ".../z and check it against Z^{r,in} ahead of the window (in a worker process)")
-    neighbour_stale_s: Annotated[float, Field(gt=0)] = Field(
+    neighbour_stale_s: SecsPos = Field(
         default=0.05, description="a neighbour not heard from for this long is not fresh (no reference from it), s")
-    neighbour_extrapolate_s: Annotated[float, Field(ge=0)] = Field(
+    neighbour_extrapolate_s: Secs = Field(
         default=0.01, description="how far a neighbour's rate carries its last P to the sample's time (s), forward "
                                   "or back (a sample answered after a stall is older than the message): P_j + dP_j/dt "
                                   "age, |age| clamped to this; 0: its last value as it is. Beyond a message period "
                                   "or two a rate is a guess: a 200 Hz load silent for 32 ms was carried 560 W off and "
                                   "the realtime loop left the band")
     plant_id: str | None = Field(default=None, description="id whose .../meas this controller reads (default: id)")
-    meas_v_min_V: Annotated[float, Field(gt=0)] = Field(
+    meas_v_min_V: Volt = Field(
         default=1.0, description="reject measurements with v below, V (answered with du/dt = 0)")
-    meas_v_max_V: Annotated[float, Field(gt=0)] = Field(
+    meas_v_max_V: Volt = Field(
         default=1000.0, description="reject measurements with v above, V (answered with du/dt = 0)")
-    meas_i_max_A: Annotated[float, Field(gt=0)] = Field(
+    meas_i_max_A: Amp = Field(
         default=1000.0, description="reject measurements with |i| or |i_load| above, A (answered with du/dt = 0)")
+    meas_u_max_V: Volt = Field(
+        default=1000.0, description="hold measurements with |u| above, V (answered with du/dt = 0)")
+    meas_max_gap_s: Annotated[float, Field(gt=0, le=60)] = Field(
+        default=0.1, description="a measurement whose seq is more than this many seconds of samples after the last "
+                                 "one stepped on is not taken as the next sample (rejected, no answer): a lone frame "
+                                 "is not the plant's new clock (docs/protocol.md, \"The plant's clock\")")
+    meas_clock_tolerance_s: Annotated[float, Field(gt=0, le=1)] | None = Field(
+        default=None, description="a measurement whose t differs from the last stepped one's t + (seq gap) x period by "
+                                  "more than this is not taken as the next sample (rejected, no answer), s; None: half "
+                                  "a period")
+    meas_resync_frames: Annotated[int, Field(ge=2, le=1000)] = Field(
+        default=3, description="after no sample was stepped on for the stale time (stale_periods, at least 50 ms), "
+                               "this many measurements in a row that agree with each other (seq and t as above) "
+                               "become the new clock: the core is re-initialised, as at a plant restart")
+    neighbour_P_max_W: WattPos | None = Field(
+        default=None, description="a neighbour's interaction message with |P_r_out|, |P_min| or |P_max| above this is "
+                                  "rejected (counted by field), its rates (P_r_out_dot, Qdot_r_out, P_dot_min, "
+                                  "P_dot_max) above this x loop.rate_hz too, W; None: meas_v_max_V x meas_i_max_A")
+    query_max_bytes: Annotated[int, Field(ge=1024, le=16 << 20)] = Field(
+        default=65536, description="a config/set request larger than this is refused before it is read (not parsed, "
+                                   "not echoed), bytes")
     stale_periods: Annotated[int, Field(ge=1, le=100000)] = Field(
         default=10, description="this many periods without a measurement -> degraded, du/dt = 0 "
                                 "(sample trigger: at least 50 ms)")
-    local_reference_W: float | Literal["measured"] | None = Field(
+    local_reference_W: Watt | Literal["measured"] | None = Field(
         default=None, description="while a neighbour is silent or gone: a load power to assume (W), or 'measured' "
                                   "(v * i_load at this component's port); None: hold du/dt = 0")
     log_dir: str | None = Field(default=None, description="record to <log_dir>/<id>-<UTC time>.mcap (off the loop)")
     log_est_every: Annotated[int, Field(ge=1, le=100000)] = Field(default=10, description="estimator record decimation")
-    log_rotate_bytes: Annotated[int, Field(ge=1 << 20)] | None = Field(
+    log_rotate_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] | None = Field(
         default=None, description="start a new file (<name>-1.mcap, -2, ...) after about this many bytes of JSON")
-    log_rotate_s: Annotated[float, Field(gt=0)] | None = Field(
+    log_rotate_s: SecsPos | None = Field(
         default=None, description="start a new file after this much log time (s)")
     log_queue: Annotated[int, Field(ge=1024, le=4_194_304)] = Field(
         default=131_072, description="recorder ring slots (128 B each); full = counted drop, never a wait")
@@ -303,8 +333,8 @@ class PlantPeerConfig(Named):
     duration_s: Annotated[float, Field(gt=0, le=86400)] = Field(default=2.0, description="length of the run, s")
     start_delay_s: Annotated[float, Field(ge=0, le=60)] = Field(
         default=0.0, description="wait this long after the peers in wait_for are up before the first sample, s")
-    seed: int = Field(default=1, description="seed of the sensor noise")
-    v_ref_V: float = Field(default=80.0, description="the voltage reference the run's metrics are judged "
+    seed: Seed = Field(default=1, description="seed of the sensor noise")
+    v_ref_V: Volt = Field(default=80.0, description="the voltage reference the run's metrics are judged "
                                                      "against, V")
     acceptance: AcceptanceConfig = Field(default=AcceptanceConfig(), description="the criteria the run's metrics "
                                          "are judged by (a scenario's [acceptance]): divergence, the band and where "
@@ -319,9 +349,9 @@ class LoadPeerConfig(Named):
     load: LoadConfig = LoadConfig()
     rate_hz: Annotated[float, Field(gt=0, le=20000)] = Field(
         default=1000.0, description="realtime: rate of the interaction messages on .../z, Hz")
-    window_s: Annotated[float, Field(gt=0)] = Field(
+    window_s: SecsPos = Field(
         default=1.0, description="length T_s of the windows the announced load ranges are for, s")
-    forecast_margin: Annotated[float, Field(ge=0)] = Field(
+    forecast_margin: Margin = Field(
         default=0.05, description="relative widening of the announced load range (fraction of its largest "
                                   "magnitude, each side)")
     pacing: Literal["lockstep", "realtime"] = Field(
@@ -343,9 +373,14 @@ def load_config(kind: type[BaseModel], path: str | Path, overrides: list[str] | 
     return config_from_dict(kind, data, overrides, str(p))
 
 
+MAX_EXTENDS = 8  # files in an 'extends' chain after the first (the longest here: 1)
+
+
 def _read_toml(p: Path, kind: type[BaseModel], seen: list[Path]) -> dict:
     if p.resolve() in seen:
         raise ScenarioError(f"config {p}: 'extends' loops back to itself ({' -> '.join(map(str, seen))})")
+    if len(seen) > MAX_EXTENDS:
+        raise ScenarioError(f"config {seen[0]}: 'extends' chains more than {MAX_EXTENDS} files (stopped at {p})")
     data = read_toml(p, "config")
     own_base_dir = "base_dir" in data
     if "base_dir" in kind.model_fields:

@@ -9,10 +9,11 @@ from pydantic import BaseModel, ConfigDict, Field
 # The admissible range of the fields every message shares, here and only here: the codecs (schemas.codec) check
 # every decoded frame against its model's bounds, and the JSON Schemas state them (docs/protocol.md, "Admissible
 # ranges"). A u64 on the wire holds up to 2^64 - 1, more than what reads it can hold: the compiled tick and the core
-# carry seq as a double (exact below 2^53), the daemon's loop-delay history and numpy as int64; so a sequence number or
-# a window index is below 2^53. A time stamp t is a sample time on the plant's clock, s: not negative, and below
-# 2^32 s (136 years), where its nanoseconds still fit the u64 log time of an MCAP record and t still resolves
-# 2^-20 s (1 us, 1 % of a period at 10 kHz); a window index t / T_s then stays below 2^53 for any window above 0.5 us.
+# carry seq as an int64, but the logs' JSON records (read by Foxglove as JavaScript doubles) and a replay's double
+# columns are exact only below 2^53; so a sequence number or a window index is below 2^53 (docs/decisions/0039).
+# A time stamp t is a sample time on the plant's clock, s: not negative, and below 2^32 s (136 years), where its
+# nanoseconds still fit the u64 log time of an MCAP record and t still resolves 2^-20 s (1 us, 1 % of a period at
+# 10 kHz); a window index t / T_s then stays below 2^53 for any window above 0.5 us.
 SEQ_LIMIT = 2**53
 T_LIMIT_S = 2.0**32
 Index = Annotated[int, Field(ge=0, lt=SEQ_LIMIT)]
@@ -115,10 +116,11 @@ class Event(Msg):
 
     t: float = Field(description="s (sample time of the tick it belongs to, or monotonic time)")
     seq: Index = Field(description="measurement seq the event precedes (config changes apply before it)")
-    kind: str = Field(description="what happened, e.g. config, reject, degraded, plant_restart, neighbour_alive, "
-                                  "neighbour_gone, forecast, recorder_drops, failed")
+    kind: str = Field(description="what happened, e.g. config, config_refused, reject, degraded, plant_restart, "
+                                  "neighbour_alive, neighbour_gone, forecast, recorder_drops, failed")
     detail: str = Field(description="JSON text (config, forecast, plant_restart, recorder_drops) or plain text "
-                                    "(reject, degraded, failed: the reason; neighbour_alive, neighbour_gone: its id)")
+                                    "(reject, degraded, failed: the reason; config_refused: the key and the error "
+                                    "answered; neighbour_alive, neighbour_gone: its id)")
 
 
 class Plant(Msg):

@@ -20,6 +20,7 @@ from pydantic import Field
 
 from schemas.component import ComponentConfig, LoopConfig, Named, NetworkRole, OutgoingForecastConfig, ZenohConfig
 from schemas.network import NetworkScenario
+from schemas.scenario import SecsPos
 
 
 class NetworkRigConfig(Named):
@@ -34,7 +35,7 @@ class NetworkRigConfig(Named):
     wait_for: list[str] = Field(default=["coordinator"], description="ids whose liveliness the rig waits for before "
                                                                      "its first sample (the sources connected at the "
                                                                      "start are waited for too)")
-    wait_s: Annotated[float, Field(gt=0)] = Field(default=30.0, description="how long to wait for them, s")
+    wait_s: SecsPos = Field(default=30.0, description="how long to wait for them, s")
     out: str | None = Field(default=None, description="the rig's MCAP log (true state, events, breakers)")
     interaction_rate_hz: Annotated[float, Field(gt=0, le=100_000)] = Field(
         default=1000.0, description="how often the lines' and loads' interaction variables are published, Hz (for "
@@ -51,7 +52,7 @@ class CoordinatorConfig(Named):
     lockstep: bool = Field(default=True, description="answer every grid sample in order (lockstep) rather than "
                                                      "only the newest")
     out: str | None = Field(default=None, description="the coordinator's MCAP log (its allocations, windows, verdicts)")
-    resume_timeout_s: Annotated[float, Field(gt=0)] = Field(default=1.0, description="at start, how long to wait for "
+    resume_timeout_s: SecsPos = Field(default=1.0, description="at start, how long to wait for "
                                                                                      "each source's config (its "
                                                                                      "v_ref) to resume from, s")
     trip_on_loss: bool = Field(default=True, description="a source whose liveliness token disappears is tripped: the "

@@ -26,13 +26,22 @@ from schemas.scenario import (
     CircuitParams,
     CommandDisturbances,
     ControllerConfig,
-    NonNeg,
-    Pos,
+    Farad,
+    Henry,
+    Ohm,
     ProfileConfig,
     ScenarioError,
+    Secs,
+    SecsPos,
+    Seed,
     SensorConfig,
     SourceLimits,
     Strict,
+    Volt,
+    VoltNonNeg,
+    Watt,
+    WattNonNeg,
+    _bounded,
     apply_overrides,
     format_validation_error,
     read_toml,
@@ -40,6 +49,9 @@ from schemas.scenario import (
 
 NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
 
+
+Share = _bounded(0, 1e6, open_lo=True)  # a source's share of the load, relative to the others'
+OhmPos = _bounded(0, 1e6, open_lo=True)
 
 NETWORK_CONTROLLER_DEFAULTS = {"load_power": "reference", "nested_K_E_per_s": 200.0}  # see SourceConfig.controller
 
@@ -64,11 +76,11 @@ class SourceConfig(CircuitParams):
                     "power) and nested_K_E_per_s = 200 /s (the layer sets the voltage once per window; a stiff "
                     "terminal-energy loop, 1 500 /s, held each terminal where the lines put it and left the sharing "
                     "2.3 pp off)")
-    share: Pos = Field(default=1.0, description="its share of the network's load under the interconnection layer "
+    share: Share = Field(default=1.0, description="its share of the network's load under the interconnection layer "
                                                 "(relative to the other sources' shares)")
     connected: bool = Field(default=True, description="its line breakers start closed; false: it starts idle, "
                                                       "disconnected, until a connect event")
-    v0_V: Pos | None = Field(default=None, description="initial terminal voltage with start = \"rest\", V; "
+    v0_V: Volt | None = Field(default=None, description="initial terminal voltage with start = \"rest\", V; "
                                                        "default: the network's nominal_v_V (a steady start "
                                                        "computes it)")
 
@@ -89,9 +101,9 @@ class SourceConfig(CircuitParams):
 class BusConfig(Strict):
     """A junction of lines and loads, with its capacitance."""
 
-    C_F: Pos = Field(description="bus capacitance, F (a bus without capacitance is refused: the node needs a "
+    C_F: Farad = Field(description="bus capacitance, F (a bus without capacitance is refused: the node needs a "
                                  "state)")
-    v0_V: Pos | None = Field(default=None, description="initial voltage with start = \"rest\", V; default: the "
+    v0_V: Volt | None = Field(default=None, description="initial voltage with start = \"rest\", V; default: the "
                                                        "network's nominal_v_V (a steady start computes it)")
 
 
@@ -100,8 +112,8 @@ class LineConfig(Strict):
 
     a: str = Field(description="the node at its a end (a bus or a source); current is positive from a to b")
     b: str = Field(description="the node at its b end (a bus or a source)")
-    R_ohm: NonNeg = Field(description="series resistance, Ω")
-    L_H: Pos = Field(description="series inductance, H")
+    R_ohm: Ohm = Field(description="series resistance, Ω")
+    L_H: Henry = Field(description="series inductance, H")
     closed: bool = Field(default=True, description="the breaker's initial state (a source's connected flag opens "
                                                    "its lines)")
 
@@ -118,11 +130,11 @@ class LoadAtBus(ProfileConfig):
     bus: str = Field(description="the bus it draws from")
     type: Literal["cpl", "resistive"] = Field(default="cpl", description="cpl: constant power P(t) from the "
                                                                           "profile; resistive: R_ohm")
-    value: float = Field(default=1200.0, allow_inf_nan=False, description="the load power, or the base of steps "
+    value: Watt = Field(default=1200.0, description="the load power, or the base of steps "
                                                                            "and sines, W")
-    R_ohm: Pos | None = Field(default=None, description="resistive: its resistance, Ω")
-    v_min_V: Pos = Field(default=5.0, description="cpl: below this voltage it draws as a resistor, V")
-    active_from_s: float = Field(default=0.0, ge=0, allow_inf_nan=False,
+    R_ohm: OhmPos | None = Field(default=None, description="resistive: its resistance, Ω")
+    v_min_V: Volt = Field(default=5.0, description="cpl: below this voltage it draws as a resistor, V")
+    active_from_s: Secs = Field(default=0.0,
                                  description="the load draws nothing before this time, s (a load switched in)")
 
     @model_validator(mode="after")
@@ -138,7 +150,7 @@ class LoadAtBus(ProfileConfig):
 class EventConfig(Strict):
     """A timed event: a breaker trips or closes, or a source asks to connect (the layer decides)."""
 
-    t_s: NonNeg = Field(description="when, s")
+    t_s: Secs = Field(description="when, s")
     kind: Literal["trip", "close", "connect"] = Field(
         description="trip: open the breakers (of a line, or of every line at a source); close: close them; "
                     "connect: the source asks the interconnection layer to connect it (closed only if feasible)")
@@ -148,12 +160,12 @@ class EventConfig(Strict):
 class LinkConfig(Strict):
     """How the interaction variables reach the controllers: delay and loss (per receiving source, or all)."""
 
-    delay_s: NonNeg = Field(default=0.0, description="extra delay of each interaction message, s (whole control "
+    delay_s: Secs = Field(default=0.0, description="extra delay of each interaction message, s (whole control "
                                                      "periods: rounded to the nearest)")
     loss: Annotated[float, Field(ge=0, lt=1)] = Field(default=0.0, description="probability a message is lost, "
                                                                                "seeded")
-    silent_from_s: NonNeg | None = Field(default=None, description="from this time on no message arrives, s")
-    silent_until_s: NonNeg | None = Field(default=None, description="the silence ends here, s (None: it lasts): a "
+    silent_from_s: Secs | None = Field(default=None, description="from this time on no message arrives, s")
+    silent_until_s: Secs | None = Field(default=None, description="the silence ends here, s (None: it lasts): a "
                                                                      "coordinator that goes away and comes back")
 
 
@@ -164,7 +176,7 @@ class LayerConfig(Strict):
         default="live-sum", description="none: each source follows the power its own lines draw; live-sum: each "
                                         "sample, source s follows share_s x the sum of all connected sources' line "
                                         "powers")
-    window_s: Pos = Field(default=0.05, description="the layer's window: v_ref moves and feasibility is checked "
+    window_s: SecsPos = Field(default=0.05, description="the layer's window: v_ref moves and feasibility is checked "
                                                     "once per window, s")
     v_ref_gain: Annotated[float, Field(ge=0, le=1)] = Field(
         default=0.5, description="per window, every source's v_ref moves by this x (nominal - the mean bus "
@@ -174,8 +186,8 @@ class LayerConfig(Strict):
                                           "to its own terminal's window mean plus that correction, which removes "
                                           "the sharing error a common v_ref leaves (P at a terminal = P^{r,in} "
                                           "v_ref / v at steady state)")
-    v_ref_max_offset_V: NonNeg = Field(default=8.0, description="bound of that v_ref offset, V")
-    extrapolate_s: NonNeg = Field(default=0.0, description="a late P^{r,in} is carried forward along its rate by its "
+    v_ref_max_offset_V: VoltNonNeg = Field(default=8.0, description="bound of that v_ref offset, V")
+    extrapolate_s: Secs = Field(default=0.0, description="a late P^{r,in} is carried forward along its rate by its "
                                                              "age, at most this long, s; 0: used as it came. The "
                                                              "nested law follows its allocation fast enough that "
                                                              "carrying it forward closes a loop through the live sum: "
@@ -183,16 +195,16 @@ class LayerConfig(Strict):
                                                              "and the bus 6 % high; at 0 they keep the figures. The "
                                                              "paper's fblc wants 0.002 (1 ms late messages keep the "
                                                              "two-source figures; 10 ms diverged 5 ms late ones)")
-    idle_power_W: NonNeg = Field(default=0.0, description="below this |power| a source's lines count as idle "
+    idle_power_W: WattNonNeg = Field(default=0.0, description="below this |power| a source's lines count as idle "
                                                           "(excluded from the live sum; its controller idles), W. 0: "
                                                           "only a disconnected source idles (the nested law holds "
                                                           "zero and reversed power); the paper's fblc needs about "
                                                           "30 W, its output y_z losing control of u at zero current")
-    idle_tau_s: Pos = Field(default=0.005, description="an idle source moves u to v_ref - 0.4 ohm x i with this time "
-                                                       "constant, s")
-    plug_in_ramp_s: NonNeg = Field(default=0.0, description="live-sum: a source that connects takes its share "
+    idle_tau_s: SecsPos = Field(default=0.005, description="an idle source moves u to v_ref - 0.4 ohm x i with this "
+                                                           "time constant, s")
+    plug_in_ramp_s: Secs = Field(default=0.0, description="live-sum: a source that connects takes its share "
                                                             "linearly over this long, s (0: at once)")
-    fallback_idle_power_W: NonNeg | None = Field(
+    fallback_idle_power_W: WattNonNeg | None = Field(
         default=None, description="in fallback (P^{r,in} stale) a source idles below this |own terminal power| "
                                   "instead of idle_power_W, W (None: idle_power_W). At 1 kHz a source left in "
                                   "fallback near zero current rang up the mapping's fast mode u/(i L) and diverged")
@@ -203,7 +215,7 @@ class LayerConfig(Strict):
                                   "a just plugged-in one kept what its v_ref gave it, 228 of its 600 W). None: "
                                   "last-allocation for the nested law, own-terminal for the others (the paper's law "
                                   "regulates its power to P^{r,in}, so a kept gap grows without bound)")
-    resume_ramp_s: NonNeg = Field(default=0.0, description="a source whose P^{r,in} is fresh again after a fallback "
+    resume_ramp_s: Secs = Field(default=0.0, description="a source whose P^{r,in} is fresh again after a fallback "
                                                            "moves from its own terminal's power to it linearly over "
                                                            "this long, s (0: at once; a returning coordinator then "
                                                            "stepped the sources back to their shares)")
@@ -221,11 +233,11 @@ class NetworkAcceptance(AcceptanceConfig):
     criterion): no node a source supplies leaves +-diverge_dev_pct of nominal_v_V, and every bus stays inside the
     band where the band must hold (a bus no source reaches, a blackout, fails the band)."""
 
-    hold_from_s: NonNeg | None = Field(
+    hold_from_s: Secs | None = Field(
         default=0.2, description="from this time on every bus must stay inside the band, s (the layer restores the "
                                  "buses over a few of its windows after the start); unset: the band is not required "
                                  "(only divergence is checked)")
-    recover_s: NonNeg = Field(
+    recover_s: Secs = Field(
         default=0.2, description="after each event (a breaker, a connect request, a load's step or on/off switch) "
                                  "the buses need not be inside the band for this long, s (the layer restores them "
                                  "over a few of its windows)")
@@ -248,8 +260,8 @@ class NetworkScenario(Strict):
     kind: Literal["network"] = Field(description="'network': tells a network scenario from a one-source one")
     name: str = Field(default="network", description="name of the scenario")
     description: str = Field(default="", description="free text")
-    seed: int = Field(default=1, ge=0, description="seed of the sensor noise and the interaction-message losses")
-    nominal_v_V: Pos = Field(default=80.0, description="the network's nominal voltage, V")
+    seed: Seed = Field(default=1, description="seed of the sensor noise and the interaction-message losses")
+    nominal_v_V: Volt = Field(default=80.0, description="the network's nominal voltage, V")
     start: Literal["steady", "rest"] = Field(
         default="steady", description="steady: the network starts at the DC operating point of its loads at t = 0, "
                                       "shared as configured; rest: every current zero, every voltage nominal")

@@ -199,13 +199,26 @@ class StatusReply(Reply):
     neighbours: dict[str, NeighbourStatus] = Field(description="by neighbour id (ComponentConfig.neighbours)")
     feasibility: FeasibilityStatus
     rejected: dict[str, int] = Field(description="rejected or held measurements and neighbour messages, by reason "
-                                                 "(e.g. 'meas.v: out of range', 'load.t: invalid')")
+                                                 "(e.g. 'meas.v: out of range', 'load.t: invalid'), those refused on "
+                                                 "receipt included")
     last_reject: str = Field(description="the last rejection's reason and detail, '' if none")
+    config_refused: int = Field(default=0, ge=0, description="config requests answered with an error: a config/set "
+                                                             "that was malformed, invalid or not applied, and a set "
+                                                             "sent to the read-only config key (each also logged: a "
+                                                             "stderr line and a config_refused event, at most one "
+                                                             "per second)")
+    last_config_refused: str = Field(default="", description="the last refused config request: the key, then the "
+                                                             "error it was answered with; '' if none")
     reference: Literal["neighbours", "none", "local"] = Field(
         description="where the last tick's P^{r,in} came from: the neighbours, none (du/dt = 0), or "
                     "local_reference_W")
     degraded_reason: str = Field(description="why the state is degraded (e.g. 'meas: stale'), '' otherwise")
     plant_restarts: int = Field(ge=0, description="times the plant's seq went back to 0 (the core was reset)")
+    clock_resyncs: int = Field(default=0, ge=0, description="times samples off the clock the daemon held became its "
+                                                          "new clock (meas_resync_frames after the stale time; the "
+                                                          "core was reset)")
+    refused_requests: int = Field(default=0, ge=0, description="config/set requests refused unread: above "
+                                                             "query_max_bytes")
     late_command_ticks: int = Field(ge=0, description="ticks at which commands were seen not acting in time "
                                                       "(controller.late_detect_V)")
     current_limited_ticks: int = Field(default=0, ge=0, description="ticks whose command the nested law shaped at "

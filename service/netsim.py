@@ -36,7 +36,7 @@ from service.core.interaction import outgoing_power_at
 from service.core.source import ACTIVE, FALLBACK, IDLE, MODES, SourceController
 from service.layer import InterconnectionLayer, link_of
 from service.netrig import NetworkRigModel
-from service.sim import band_must_hold, hold_metrics, settle_time, verdict
+from service.sim import band_must_hold, check_trace_size, hold_metrics, settle_time, verdict
 
 STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal
 # per source and tick: the true state (i, v, u, i_out), the power its lines draw as measured (P), the P^{r,in} it
@@ -79,6 +79,8 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     """The network's closed loop offline (see the module docstring). impl: the cores' and the plant's
     implementation (service.core.make_core)."""
     tm, lay = net.timing, net.layer
+    check_trace_size(int(round(tm.duration_s / (1.0 / tm.control_rate_hz))),  # before anything is allocated
+                     1 + len(net.sources) * len(SOURCE_SIGNALS) + len(net.buses) + len(net.lines), net.name)
     rig = NetworkRigModel(net, impl)  # the plant side, as the network rig runs it
     plant, T, N, d = rig.plant, rig.T, rig.N, rig.d
     layer = InterconnectionLayer(net, plant)  # the layer, as the coordinator runs it

@@ -129,6 +129,67 @@ def background(level: int) -> None:
         os.setpriority(os.PRIO_PROCESS, 0, level)
 
 
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+PARENT_ENV = "ENERGYCTL_PARENT"  # "PID" or "PID:watch": a child `energyctl` ends when PID does (die_with_parent)
+WATCH_PERIOD_S = 0.25  # how often a watching child looks whether its parent is still there
+
+
+def die_with_parent(parent: int, forked_by_main_thread: bool = True) -> str:
+    """End the calling process with SIGTERM (its own handler, if any, runs: a daemon stops as on a kill) once
+    ``parent`` is no longer its parent: it died, SIGKILL included, and the child was handed to init or a subreaper.
+    Without this a spawned worker waits on a pipe it holds both ends of, and lives on (a forecast worker of 46 MB and
+    the resource tracker it kept alive, 13 MB, outlived a SIGKILLed daemon by more than 9 minutes).
+
+    Linux's PR_SET_PDEATHSIG signals the child when the *thread* that forked it ends, so it is used only when that
+    thread was the parent's main thread (``forked_by_main_thread``), which ends only with the process; otherwise
+    (a worker started from a short-lived thread: service.priority.in_normal_thread) a daemon thread looks at
+    getppid() every WATCH_PERIOD_S. Returns "pdeathsig" or "watch": which one it set up."""
+    import signal
+    import threading
+
+    how = "watch"
+    prctl = _prctl() if forked_by_main_thread else None
+    if prctl is not None and prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0) == 0:
+        how = "pdeathsig"
+    else:
+        def watch() -> None:
+            import time
+
+            while os.getppid() == parent:
+                time.sleep(WATCH_PERIOD_S)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+        threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    if os.getppid() != parent:  # it died before the signal was asked for
+        os.kill(os.getpid(), signal.SIGTERM)
+    return how
+
+
+def parent_env() -> dict[str, str]:
+    """The environment entry that makes a child ``energyctl`` (clients.cli.main) die with this process: started from
+    this process's main thread, by PR_SET_PDEATHSIG, else by watching."""
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    return {PARENT_ENV: f"{os.getpid()}" if main else f"{os.getpid()}:watch"}
+
+
+def die_with_parent_from_env() -> str | None:
+    """In a child ``energyctl``: die_with_parent as parent_env asked (the entry is removed, so that what this process
+    starts is not tied to its parent's parent); None when it was not asked."""
+    value = os.environ.pop(PARENT_ENV, "")
+    pid, _, mode = value.partition(":")
+    if not pid.isdigit():
+        return None
+    return die_with_parent(int(pid), forked_by_main_thread=mode != "watch")
+
+
+def background_child(level: int, parent: int, forked_by_main_thread: bool) -> None:
+    """A background worker's initializer: ``background(level)``, and it ends with its parent (die_with_parent)."""
+    background(level)
+    die_with_parent(parent, forked_by_main_thread)
+
+
 def set_cpus(cpus: list[int] | None) -> str | None:
     """Keep the calling thread, and every thread and process it starts afterwards, on ``cpus`` (None: leave it).
     Returns a one-line reason when the system refused or has no such call, else None."""

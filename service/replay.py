@@ -49,6 +49,7 @@ class Ticks:
     cfg_events: dict[int, list]  # key -> controller configs applied before that tick
     restarts: int
     sources: list[str]  # per part: "index" or "json"
+    stopped_at_gap: dict | None = None  # a recovered log: the first dropped chunk, where the ticks end (_before_gap)
 
 
 def _increasing(keys: np.ndarray) -> bool:
@@ -105,7 +106,32 @@ def _from_index(data: list[LogData]) -> Ticks | None:
                  [d.source for d in data])
 
 
+def _before_gap(tk: Ticks, gaps: list[dict], part: str) -> Ticks:
+    """A recovered log (energyctl log recover dropped corrupt chunks): only the ticks before the first lost chunk.
+    Every message of a lost chunk has a log time at or after the chunk's start, so each tick stamped before it is
+    whole; after it the core's state is unknown (the lost ticks carried it), so nothing after is compared."""
+    if any(g.get("start_s") is None for g in gaps):
+        raise ReplayError(f"{part}: recovered from a log that lost a chunk whose time span is unknown; replay needs "
+                          "every tick in order")
+    first = min(gaps, key=lambda g: g["start_s"])
+    late = np.nonzero(tk.rows[:, 1] >= first["start_s"])[0]
+    keep = int(late[0]) if len(late) else len(tk.keys)
+    if keep == 0:
+        raise ReplayError(f"{part}: recovered from a log that lost its first ticks (a corrupt chunk from t = "
+                          f"{first['start_s']:.6f} s, byte {first['offset']}): the core's state at the first readable "
+                          "tick is unknown, nothing to replay")
+    k = slice(0, keep)
+    return Ticks(tk.core, tk.keys[k], tk.rows[k], tk.logged[k], tk.logged_next[k], tk.has_cmd[k], tk.cfg_events,
+                 int(tk.keys[keep - 1] >> SEQ_BITS), tk.sources, first)
+
+
 def collect(parts: list, use_index: bool = True, component: str | None = None) -> Ticks:
+    tk, data = _collect(parts, use_index, component)
+    gaps = [g for d in data for g in d.gaps]
+    return _before_gap(tk, gaps, str(parts[0])) if gaps else tk
+
+
+def _collect(parts: list, use_index: bool = True, component: str | None = None) -> tuple[Ticks, list[LogData]]:
     data = [read_log(p, use_index, component) for p in parts]
     if data[0].core is None and component is None and (names := component_names(parts[0])):
         raise ReplayError(f"{parts[0]}: a network log: name the component to replay (--component "
@@ -120,7 +146,7 @@ def collect(parts: list, use_index: bool = True, component: str | None = None) -
     if all(d.ticks is not None for d in data):
         fast = _from_index(data)
         if fast is not None:
-            return fast
+            return fast, data
     rows = np.concatenate([r for d in data for r in d.as_rows()]) if data else np.zeros((0, 9))
     code, seq = rows[:, 0], rows[:, 1]
     is_meas = code == 0
@@ -147,7 +173,7 @@ def collect(parts: list, use_index: bool = True, component: str | None = None) -
     last_epoch = int(epoch[-1]) if len(epoch) else 0
     cfg_events = _place_config_events([e for d in data for e in d.events], mk, mv[:, 2], last_epoch)
     return Ticks(data[0].core, keys, out, logged, logged_next, has_cmd, cfg_events, last_epoch,
-                 [d.source for d in data])
+                 [d.source for d in data]), data
 
 
 def replay(path: str | Path | list, overrides: list[str] | None = None, controller: str | None = None,
@@ -221,7 +247,8 @@ def replay(path: str | Path | list, overrides: list[str] | None = None, controll
     res = {"log": str(path), "ticks": n, "compared": int(tk.has_cmd.sum()) if not what_if else 0,
            "plant_restarts": tk.restarts, "core": core.impl, "read_from": ",".join(tk.sources),
            "identical": first is None and not what_if, "first_divergence": first, "wall_s": wall,
-           "log_span_s": span, "speed_x_realtime": span / wall if wall > 0 else None}
+           "log_span_s": span, "speed_x_realtime": span / wall if wall > 0 else None,
+           "stopped_at_gap": tk.stopped_at_gap}
     if out:
         _write(out, core_meta, ctl, tk, du, du_next)
         res["out"] = out

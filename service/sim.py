@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.scenario import AcceptanceConfig, Scenario
+from schemas.scenario import AcceptanceConfig, Scenario, ScenarioError
 from service.core import effective_gain, make_core
 from service.core.feasibility import FeasibilityMonitor, Violation, incoming_range, load_box, tau_prime
 from service.core.types import Incoming
@@ -34,6 +34,21 @@ TRACE_FIELDS = (
     "E", "E_t", "p", "y_z_balance", "eta", "P_r_out", "Qdot_r_out", "z_out0", "z_out1",
     "P_r_in", "P_r_in_dot",  # what the core was given (replay input)
 )
+
+
+MAX_TRACE_BYTES = 1 << 30  # what a run's trace may hold (float64 columns): 1 GiB
+CHUNK = 8192  # samples collected as Python tuples before they go into the trace's columns
+
+
+def check_trace_size(samples: int, columns: int, what: str = "scenario") -> None:
+    """A ScenarioError when a run of that many samples of that many columns would hold more than MAX_TRACE_BYTES:
+    refused before it starts rather than ending in a MemoryError (3600 s at 100 kHz grew ~230 MB/s)."""
+    need = samples * columns * 8
+    if need > MAX_TRACE_BYTES:
+        most = MAX_TRACE_BYTES // (columns * 8)
+        raise ScenarioError(f"{what}: timing.duration_s x timing.control_rate_hz = {samples:,} samples of {columns} "
+                            f"values would hold {need / 2**30:.1f} GiB, over the {MAX_TRACE_BYTES >> 30} GiB a run's "
+                            f"trace may (at most {most:,} samples): shorten duration_s or lower control_rate_hz")
 
 
 @dataclass
@@ -57,6 +72,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     T = 1.0 / tm.control_rate_hz
     n_sub = substeps(T, tm.plant_step_s)
     N = int(round(tm.duration_s / T))
+    check_trace_size(N, len(TRACE_FIELDS), scn.name)
     load = Profile(scn.load, scn.base_dir)
     dist = Profile(scn.disturbance, scn.base_dir) if scn.disturbance is not None else None
     plant = RLCPlant(scn.plant, load, dist, impl or "auto")
@@ -82,6 +98,8 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
 
     t_warm = 5.0 * scn.controller.deriv_tau_s  # derivative estimates need ~5 tau of history
     y_ref_of = core.y_ref_of  # the controller's own reference map, evaluated on the true state
+    cols = np.empty((len(TRACE_FIELDS), N))  # pages are taken as they are written: a diverged run's stay free
+    done = 0  # samples moved into cols
     rows: list[tuple] = []
     row = rows.append
     R_true, v_ref = scn.plant.R_ohm, scn.controller.v_ref_V
@@ -113,12 +131,18 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
              est.E, est.E_t, est.p, est.y_z_balance, est.eta, est.P_r_out_port, est.Qdot_r_out_port,
              out.z_out0, out.z_out1, inc.P_r_in, inc.P_r_in_dot))
         plant.advance(r_apply, T, n_sub)
+        if len(rows) == CHUNK:
+            cols[:, done:done + CHUNK] = np.asarray(rows, dtype=float).T
+            done += CHUNK
+            rows.clear()
         if diverged is None and (not abs(plant.v - v_ref) <= dev_max or not abs(plant.i) <= I_DIVERGED_A):
             diverged = (plant.t, divergence_why(plant.v, plant.i, v_ref, acc))
             if stop_on_divergence:
                 break
-    cols = np.asarray(rows, dtype=float).reshape(len(rows), len(TRACE_FIELDS)).T
-    trace = {f: cols[k].copy() for k, f in enumerate(TRACE_FIELDS)}
+    if rows:
+        cols[:, done:done + len(rows)] = np.asarray(rows, dtype=float).T
+        done += len(rows)
+    trace = {f: cols[k, :done] for k, f in enumerate(TRACE_FIELDS)}  # each a contiguous row of cols
     metrics = compute_metrics(trace, v_ref, tm.duration_s, diverged, feas.count, acc, profile_events(load, dist))
     metrics["forecast_infeasible_windows"] = (sum(not f.feasible for f in forecasts) if fs.forecast.enabled
                                               else None)

@@ -49,7 +49,7 @@ def drive_daemon(scn, tr: dict, log_dir: str, impl: str | None = None, hooks: di
     # the controller the trace was made with (not the realtime stacks' load power and regulation): the daemon's
     # commands are then the trace's, and its loop-delay estimate from the trace's u holds
     comp["controller"] = {**scn.controller.model_dump(), "delay_compensation_samples": None}
-    comp["neighbour_stale_s"] = 1e9
+    comp["neighbour_stale_s"] = 86_400.0  # never stale here (the most the config takes: a day)
     comp["log_dir"] = log_dir
     comp["delay_samples"] = scn.timing.delay_samples
     comp["log_queue"] = 1 << 20  # the writer keeps up on average; a long run must not drop at start-up

@@ -146,6 +146,19 @@ def _fuzz(args: argparse.Namespace) -> dict:
     return bench_fuzz(frames=args.n or 100_000, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
 
 
+def _router_audit(args: argparse.Namespace) -> dict:
+    from clients.bench.router_audit import bench_router_audit
+
+    return bench_router_audit(rate_hz=float(args.rates) if args.rates else 10_000.0, seconds=args.seconds or 3.0,
+                              pairs=max(args.runs, 2), progress=lambda r: print(f"  {r}", file=sys.stderr, flush=True))
+
+
+def _attack(args: argparse.Namespace) -> dict:
+    from clients.bench.attack import bench_attack
+
+    return bench_attack(flood_s=args.seconds or 10.0, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+
+
 class Bench(NamedTuple):
     run: Callable[[argparse.Namespace], dict]
     what: str  # what it measures, for --help
@@ -179,6 +192,14 @@ BENCHES: dict[str, Bench] = {
                          "samples of the paper's stack in lockstep at 10 kHz: frames counted against sent by reason, "
                          "loop deaths, tracebacks, commands after a bad frame, v's deviation from v_ref (-n frames, "
                          "default 100000)"),
+    "router-audit": Bench(_router_audit, "the secure router's CPU with refusal logging on and off while one identity "
+                                         "publishes to another at --rates (one rate, default 10000 Hz) for --seconds "
+                                         "(default 3), alternated --runs pairs (at least 2); then the refusals it "
+                                         "counts for 20 denied config sets and a wrong password"),
+    "attack": Bench(_attack, "the realtime stack at 1 kHz under attack (forged measurements, a 10 MB "
+                             "config/set, a flood of invalid frames at 27 k/s for --seconds, default 10, the "
+                             "controller stopped for 0.6 s), each beside an unattacked control run: time until v is "
+                             "back within +-2 % after the attack ends"),
     "middleware": Bench(_middleware, "the Zenoh and MCAP facts the daemon's design rests on, re-measured: put cost, "
                                      "one-way and round-trip latency, callback vs polled receive, query round trip, "
                                      "liveliness loss after kill -9, CPU per message, encoding cost, MCAP writes"),
@@ -206,7 +227,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "--set defaults, an 8 ms loop-delay schedule), with status queries at 100 Hz")
     b.add_argument("--seconds", type=float, default=None,
                    help="recorder: paced run length (default 10); replay: log length (default 10); realtime: each "
-                        "run (default 2); network: simulated time per size (default 0.2)")
+                        "run (default 2); network: simulated time per size (default 0.2); attack: the flood (default "
+                        "10)")
     b.add_argument("-n", type=int, default=None,
                    help="latency: round trips per target (default 3000); tick: ticks (default 20000); wake: waits "
                         "per setting (default 20000); middleware: puts and pings (default 3000); fuzz: bad frames "

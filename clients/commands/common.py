@@ -18,14 +18,14 @@ CONTROLLERS = ("nested", "fblc", "smc", "lqr", "bm", "pi", "fixed")
 def is_network_file(path: str) -> bool:
     """Whether the TOML file at path is a network scenario (kind = "network"); False if it cannot be read (the
     one-source loader then says why)."""
-    import tomllib
+    from pathlib import Path
 
     from schemas.network import is_network
+    from schemas.scenario import read_toml
 
     try:
-        with open(path, "rb") as f:
-            return is_network(tomllib.load(f))
-    except (OSError, tomllib.TOMLDecodeError):
+        return is_network(read_toml(Path(path), "scenario"))
+    except ScenarioError:
         return False
 
 
@@ -105,8 +105,13 @@ def parallel(jobs: list[tuple[str, list[str]]], n_jobs: int | None, progress: bo
                 _progress(k, len(jobs), t0)
         return out
     import multiprocessing as mp
+    import threading
 
-    with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(n) as pool:
+    from service.priority import die_with_parent
+
+    # each worker ends with this process (a SIGKILLed sweep left its workers running its grid to the end)
+    tie = (os.getpid(), threading.current_thread() is threading.main_thread())
+    with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(n, die_with_parent, tie) as pool:
         out = []
         for k, m in enumerate(pool.imap(worker, jobs, chunksize=2), 1):
             out.append(m)

@@ -41,9 +41,9 @@ def run(args: argparse.Namespace) -> int:
         raise ScenarioError("replay: a what-if (--set/--controller) needs --out NEW.mcap")
     from service.layer_replay import is_coordinator_log
 
-    if len(args.log) == 1 and is_coordinator_log(args.log[0]):
-        return replay_layer(args)
     try:
+        if len(args.log) == 1 and is_coordinator_log(args.log[0]):
+            return replay_layer(args)
         res = replay(args.log, args.set, args.controller, args.out, progress=not args.json,
                      use_index=not args.no_index, impl=args.core,
                      component=args.component)
@@ -55,9 +55,12 @@ def run(args: argparse.Namespace) -> int:
     elif args.out:
         print(f"what-if: {res['ticks']} ticks replayed into {res['out']} ({res['wall_s']:.2f} s)")
     elif res["identical"]:
+        gap = res.get("stopped_at_gap")
+        upto = (f"; compared up to t = {gap['start_s']:.6f} s only: the log was recovered and lost a corrupt chunk "
+                f"there (byte {gap['offset']} of the original), after which the core's state is unknown" if gap else "")
         print(f"identical: {res['compared']} commands reproduced bit for bit "
               f"({res['ticks']} ticks, {res['wall_s']:.2f} s, {res['speed_x_realtime']:.1f}x real time, "
-              f"read from {'the tick index' if 'index' in res['read_from'] else 'the JSON channels'})")
+              f"read from {'the tick index' if 'index' in res['read_from'] else 'the JSON channels'}){upto}")
     else:
         d = res["first_divergence"]
         print(f"diverged at t = {d['t']:.6f} s (seq {d['seq']}): {d['field']} logged {d['logged']!r}, "

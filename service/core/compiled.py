@@ -42,7 +42,7 @@ for _j, _name in enumerate(RLCEnergy.__slots__):
 class KernelOutput:
     """core.Output's fields read from the kernel's buffer (valid until the next step)."""
 
-    __slots__ = ("_b", "_est")
+    __slots__ = ("_b", "_est", "_q")
     du_dt = _slot(O_DU, "du/dt sent (V/s)")
     du_dt_next = _slot(O_DU_NEXT, "du/dt planned for the period after (V/s; 0 without plan_next_period)")
     du_dt_raw = _slot(O_DU_RAW, "du/dt before limits (V/s)")
@@ -60,6 +60,7 @@ class KernelOutput:
     def __init__(self, buf: memoryview):
         self._b = buf
         self._est = KernelEstimate(buf)
+        self._q = buf.cast("B").cast("q")  # the same bytes as int64s
 
     @property
     def limited(self) -> bool:
@@ -74,8 +75,8 @@ class KernelOutput:
         return self._b[O_ILIM] != 0.0
 
     @property
-    def seq(self) -> int:
-        return int(self._b[O_SEQ])
+    def seq(self) -> int:  # an int64 in the double buffer's O_SEQ slot (exact above 2^53)
+        return self._q[O_SEQ]
 
     @property
     def est(self) -> KernelEstimate | None:

@@ -197,14 +197,14 @@ static void kernel_reset(Kernel *k)
     k->o[O_ZRUN0] = k->o[O_ZRUN1] = 0.0;
     k->has_last = 0;
     for (int j = 0; j <= k->d; j++) {
-        k->pending[3 * j] = NAN;
-        k->pending[3 * j + 1] = k->pending[3 * j + 2] = 0.0;
+        k->pending_seq[j] = SEQ_NONE;
+        k->pending[2 * j] = k->pending[2 * j + 1] = 0.0;
     }
     k->r_prev = 0.0;
     k->late = 0;
-    k->last_seq_u = -2.0;
+    k->last_seq_u = -2;
     k->last_u = 0.0;
-    k->x_seq = -2.0;
+    k->x_seq = -2;
     k->x_hat[0] = k->x_hat[1] = k->x_hat[2] = 0.0;
     k->x_P = 0.0;
     k->o[O_STEPS] = 0.0;
@@ -291,29 +291,36 @@ static void energy_update(double *e, double R, double L, double C, double i, dou
 }
 
 /* slot of sample seq in pending: seq mod (d + 1), non-negative as Python's % */
-static int slot_of(const Kernel *k, double seq)
+static int slot_of(const Kernel *k, long long seq)
 {
-    double m = (double)(k->d + 1);
-    double j = fmod(seq, m);
-    return (int)(j < 0.0 ? j + m : j);
+    long long m = (long long)k->d + 1;
+    long long j = seq % m;
+    return (int)(j < 0 ? j + m : j);
 }
 
 /* ControlCore.issued */
-static double issued(const Kernel *k, double seq)
+static double issued(const Kernel *k, long long seq)
 {
-    const double *e = k->pending + 3 * slot_of(k, seq);
-    if (e[0] == seq)
-        return e[1];
-    e = k->pending + 3 * slot_of(k, seq - 1.0);
-    return e[0] == seq - 1.0 ? e[2] : 0.0;
+    int j = slot_of(k, seq);
+    if (k->pending_seq[j] == seq)
+        return k->pending[2 * j];
+    j = slot_of(k, seq - 1);
+    return k->pending_seq[j] == seq - 1 ? k->pending[2 * j + 1] : 0.0;
 }
 
-static void remember(Kernel *k, double seq, double r, double plan)
+static void remember(Kernel *k, long long seq, double r, double plan)
 {
-    double *e = k->pending + 3 * slot_of(k, seq);
-    e[0] = seq;
-    e[1] = r;
-    e[2] = plan;
+    int j = slot_of(k, seq);
+    k->pending_seq[j] = seq;
+    k->pending[2 * j] = r;
+    k->pending[2 * j + 1] = plan;
+}
+
+long long kernel_seq(const Kernel *k)
+{
+    long long seq;
+    memcpy(&seq, k->o + O_SEQ, sizeof seq);
+    return seq;
 }
 
 /* ControlCore._law: du/dt within the limits for the period from t_{k+dd}, from the state predicted there; *raw
@@ -416,14 +423,14 @@ static double law(Kernel *k, double i_p, double v_p, double u_p, double P_load, 
 /* ControlCore._observe: the state the delay prediction starts from, x = x^- + g (y - x^-), x^- the previous
    estimate carried over one period at the rate the plant applied; from the sample after a gap. Before this step's
    command is remembered. */
-static void observe(Kernel *k, double seq, double si_, double sv, double su, double P_load, int late, double *pi,
+static void observe(Kernel *k, long long seq, double si_, double sv, double su, double P_load, int late, double *pi,
                     double *pv, double *pu)
 {
     double i, v, u;
-    if (k->x_seq != seq - 1.0) {
+    if (k->x_seq != seq - 1) {
         i = si_; v = sv; u = su;
     } else {
-        double r = late ? 0.0 : issued(k, seq - 1.0 - k->d);
+        double r = late ? 0.0 : issued(k, seq - 1 - k->d);
         i = k->x_hat[0]; v = k->x_hat[1]; u = k->x_hat[2];
         predict_in_range(&i, &v, &u, k->x_P, r, k->T, k->n_pred, k->R, k->L, k->C, k->u_min, k->u_max);
         const double g = k->obs;
@@ -438,15 +445,15 @@ static void observe(Kernel *k, double seq, double si_, double sv, double su, dou
 }
 
 /* ControlCore.step; returns 1 if the estimator took the sample. */
-int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double su, double si2, double P_in,
+int kernel_step(Kernel *k, long long seq, double t, double si_, double sv, double su, double si2, double P_in,
                 double P_in_dot)
 {
     const double R = k->R, L = k->L, C = k->C, T = k->T;
     const double u_min = k->u_min, u_max = k->u_max;
     const int d = k->d;
     double *o = k->o;
-    if (d > 0 && k->late_tol > 0.0 && k->last_seq_u == seq - 1.0)
-        k->late = fabs((su - k->last_u) - T * issued(k, seq - 1.0 - d)) > k->late_tol;
+    if (d > 0 && k->late_tol > 0.0 && k->last_seq_u == seq - 1)
+        k->late = fabs((su - k->last_u) - T * issued(k, seq - 1 - d)) > k->late_tol;
     k->last_seq_u = seq;
     k->last_u = su;
     const int late = k->late;
@@ -510,7 +517,7 @@ int kernel_step(Kernel *k, double seq, double t, double si_, double sv, double s
     o[O_DU] = r;
     o[O_DU_NEXT] = plan;
     o[O_UZ] = u_z;
-    o[O_SEQ] = seq;
+    memcpy(o + O_SEQ, &seq, sizeof seq);
     o[O_T] = t;
     k->r_prev = r;
     remember(k, seq, r, plan);
@@ -532,8 +539,10 @@ static int Kernel_init(Kernel *self, PyObject *args, PyObject *kw)
         return -1;
     }
     PyMem_Free(self->pending);
-    self->pending = PyMem_Calloc(3 * ((size_t)d + 1), sizeof(double));
-    if (self->pending == NULL) {
+    PyMem_Free(self->pending_seq);
+    self->pending = PyMem_Calloc(2 * ((size_t)d + 1), sizeof(double));
+    self->pending_seq = PyMem_Calloc((size_t)d + 1, sizeof(long long));
+    if (self->pending == NULL || self->pending_seq == NULL) {
         PyErr_NoMemory();
         return -1;
     }
@@ -547,6 +556,7 @@ static int Kernel_init(Kernel *self, PyObject *args, PyObject *kw)
 static void Kernel_dealloc(Kernel *self)
 {
     PyMem_Free(self->pending);
+    PyMem_Free(self->pending_seq);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -583,13 +593,58 @@ int float_args(PyObject *const *args, Py_ssize_t nargs, int n, double *x, const 
     return 1;
 }
 
+static int seq_of(PyObject *a, long long *seq)
+{
+    if (PyFloat_Check(a)) {  /* as before: an integral float below 2^53, where it is exact */
+        double x = PyFloat_AS_DOUBLE(a);
+        if (!(x == floor(x) && fabs(x) < 9007199254740992.0)) {
+            PyErr_Format(PyExc_ValueError, "seq: %R is not an integer below 2^53", a);
+            return 0;
+        }
+        *seq = (long long)x;
+        return 1;
+    }
+    PyObject *n = PyNumber_Index(a);
+    if (n == NULL)
+        return 0;
+    int overflow;
+    long long v = PyLong_AsLongLongAndOverflow(n, &overflow);
+    Py_DECREF(n);
+    if (v == -1 && PyErr_Occurred())
+        return 0;
+    if (overflow || v >= SEQ_MAX || v <= -SEQ_MAX) {
+        PyErr_Format(PyExc_ValueError, "seq: %R is beyond +-2^62", a);
+        return 0;
+    }
+    *seq = v;
+    return 1;
+}
+
+int seq_float_args(PyObject *const *args, Py_ssize_t nargs, int n, long long *seq, double *x, const char *usage)
+{
+    if (nargs != n) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d arguments", usage, n);
+        return 0;
+    }
+    if (!seq_of(args[0], seq))
+        return 0;
+    x[0] = 0.0;
+    for (int j = 1; j < n; j++) {
+        x[j] = PyFloat_AsDouble(args[j]);
+        if (x[j] == -1.0 && PyErr_Occurred())
+            return 0;
+    }
+    return 1;
+}
+
 /* step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot) -> bool (estimator took the sample) */
 static PyObject *Kernel_step(Kernel *self, PyObject *const *args, Py_ssize_t nargs)
 {
     double x[8];
-    if (!float_args(args, nargs, 8, x, "step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot)"))
+    long long seq;
+    if (!seq_float_args(args, nargs, 8, &seq, x, "step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot)"))
         return NULL;
-    int took = kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
+    int took = kernel_step(self, seq, x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
     return PyBool_FromLong(took);
 }
 
@@ -610,9 +665,10 @@ PyObject *port_rates(const double *o, double *qdot)
 static PyObject *Kernel_step_values(Kernel *self, PyObject *const *args, Py_ssize_t nargs)
 {
     double x[8];
-    if (!float_args(args, nargs, 8, x, "step_values(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot)"))
+    long long seq;
+    if (!seq_float_args(args, nargs, 8, &seq, x, "step_values(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot)"))
         return NULL;
-    kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
+    kernel_step(self, seq, x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
     const double *o = self->o;
     double qdot;
     PyObject *P_out = port_rates(o, &qdot);
@@ -659,16 +715,23 @@ static PyObject *Kernel_run(Kernel *self, PyObject *args)
         goto done;
     }
     const double *x = (const double *)in.buf;
+    for (Py_ssize_t j = 0; j < n; j++) {  /* seq in a double column: exact only as an integer below 2^53 */
+        double s = x[j * width];
+        if (!(s == floor(s) && fabs(s) < 9007199254740992.0)) {
+            PyErr_Format(PyExc_ValueError, "run(): row %zd: seq is not an integer below 2^53", j);
+            goto done;
+        }
+    }
     double *du = (double *)out.buf, *dn = nxt.obj != NULL ? (double *)nxt.buf : NULL;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = 0; j < n; j++, x += width) {
         if (x[8] != 0.0) {
-            kernel_step(self, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
+            kernel_step(self, (long long)x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
             du[j] = self->o[O_DU];
             if (dn != NULL)
                 dn[j] = self->o[O_DU_NEXT];
         } else {
-            remember(self, x[0], 0.0, 0.0);
+            remember(self, (long long)x[0], 0.0, 0.0);
             du[j] = 0.0;
             if (dn != NULL)
                 dn[j] = 0.0;
@@ -687,8 +750,10 @@ done:
 
 static PyObject *Kernel_hold(Kernel *self, PyObject *args)
 {
-    double seq, r = 0.0;
-    if (!PyArg_ParseTuple(args, "d|d", &seq, &r))
+    PyObject *s;
+    long long seq;
+    double r = 0.0;
+    if (!PyArg_ParseTuple(args, "O|d", &s, &r) || !seq_of(s, &seq))
         return NULL;
     remember(self, seq, r, 0.0);
     Py_RETURN_NONE;
@@ -698,7 +763,7 @@ static PyObject *Kernel_applied_rate(Kernel *self, PyObject *Py_UNUSED(ignored))
 {
     if (self->d == 0)
         return PyFloat_FromDouble(self->r_prev);
-    return PyFloat_FromDouble(issued(self, (self->o[O_STEPS] > 0.0 ? self->o[O_SEQ] + 1.0 : 0.0) - self->d));
+    return PyFloat_FromDouble(issued(self, (self->o[O_STEPS] > 0.0 ? kernel_seq(self) + 1 : 0) - self->d));
 }
 
 /* The outputs, read-only; the view holds a reference to the kernel, which owns o[] for its whole life. */

@@ -171,12 +171,14 @@ class NewestQueue(Queue):
                     pass
 
 
-def queued(session: zenoh.Session, key_expr: str, maxsize: int = 0):
+def queued(session: zenoh.Session, key_expr: str, maxsize: int = 0, admit=None):
     """(subscriber, queue): each message is put as (arrival monotonic ns, payload bytes) by a callback.
 
     For event-driven loops: ``queue.get(timeout=...)`` sleeps without the GIL and wakes on arrival
     (unlike a blocked ``recv()``, it can time out, so the loop can always be stopped). ``maxsize`` (0: unbounded)
-    keeps the newest that many and counts the dropped ones in ``queue.dropped`` (``NewestQueue``).
+    keeps the newest that many and counts the dropped ones in ``queue.dropped`` (``NewestQueue``). ``admit``
+    (payload bytes -> bool), if given, runs on Zenoh's thread first: a payload it refuses is not queued (it counts
+    and names what it refuses itself).
 
     queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout=...) can block forever when its
     deadline passes between a wake-up and the re-wait (the remaining time goes negative, which its lock
@@ -185,8 +187,14 @@ def queued(session: zenoh.Session, key_expr: str, maxsize: int = 0):
     q = NewestQueue(maxsize)
     put, now = q.put_newest, time.monotonic_ns
 
-    def on_sample(sample) -> None:
-        put((now(), sample.payload.to_bytes()))
+    if admit is None:
+        def on_sample(sample) -> None:
+            put((now(), sample.payload.to_bytes()))
+    else:
+        def on_sample(sample) -> None:
+            b = sample.payload.to_bytes()
+            if admit(b):
+                put((now(), b))
 
     return session.declare_subscriber(key_expr, on_sample), q
 

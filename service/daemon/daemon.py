@@ -5,7 +5,9 @@ Threads:
   polled with try_recv, no callbacks), steps the core, publishes du/dt; it records timing into
   preallocated arrays and never formats JSON, logs or serves queries;
 * three query threads answer ``status``, ``config`` and ``config/set`` from channels; a config set is
-  validated there and handed to the loop, which applies it at the next tick boundary;
+  validated there (its size first: query_max_bytes) and handed to the loop, which applies it at the next tick boundary;
+* with the sample trigger's queue, Zenoh's receiving thread refuses the measurements that can never be the next
+  sample before they are queued (_admit: counted by reason), so that a flood of them costs the loop nothing;
 * the main thread waits for SIGINT/SIGTERM and shuts down within one period.
 
 Lifecycle: configured -> active <-> inactive (du/dt = 0 is published) -> shutdown; active -> degraded
@@ -86,6 +88,29 @@ class Daemon(DaemonQueries):
         self._pending_state: str | None = None
         self._stop = threading.Event()
         self._last_seq = -1
+        # the plant's clock (docs/protocol.md, "The plant's clock"): the next sample is at most _max_gap samples after
+        # the last one stepped on, and its t within _clock_tol of where that seq's sample time is; frames that are not
+        # form a candidate clock (_chain: the newest one's seq and t, and how many agreed in a row), adopted once no
+        # sample was stepped on for _resync_ns of the loop's clock (from _accepted_ns)
+        self._u_max = cfg.meas_u_max_V
+        self._max_gap = max(1, int(cfg.meas_max_gap_s * cfg.loop.rate_hz))
+        self._clock_tol = (cfg.meas_clock_tolerance_s if cfg.meas_clock_tolerance_s is not None
+                           else 0.5 * self.period_s)
+        self._resync_ns = max(int(cfg.stale_periods * self.period_s * 1e9), SAMPLE_STALE_MIN_NS)
+        self._accepted_ns = 0
+        self._chain: tuple[int, float] | None = None
+        self._chain_n = 0
+        self.clock_resyncs = 0
+        self.refused_requests = 0  # config/set requests above query_max_bytes
+        # a neighbour's plausible powers (W) and rates (W/s): from the config (neighbour_P_max_W, else v_max x i_max)
+        P_max = cfg.neighbour_P_max_W if cfg.neighbour_P_max_W is not None else cfg.meas_v_max_V * cfg.meas_i_max_A
+        powers, rates = ("P_r_out", "P_min", "P_max"), ("P_r_out_dot", "Qdot_r_out", "P_dot_min", "P_dot_max")
+        self._z_bounds = tuple((k, name, P_max if name in powers else P_max * cfg.loop.rate_hz)
+                               for k, name in enumerate(Z.fields) if name in powers + rates)
+        # measurements refused on receipt (the subscriber's thread, _admit): counted apart from the loop's own
+        self.rx_rejected: dict[str, int] = {}
+        self._rx_lock = threading.Lock()  # Zenoh may call the subscriber from more than one of its threads
+        self._rx_logged = 0  # rx rejections already summarised in an event
         self._z_seq = 0
         self.feas = FeasibilityMonitor(cfg.forecast_window_s, keep_windows=100, keep_recent=5)
         self._tau_p = tau_prime(cfg.model.L_H, cfg.model.R_ohm, effective_gain(cfg.controller, cfg.model))
@@ -111,7 +136,9 @@ class Daemon(DaemonQueries):
         self.session = s = open_session(c.zenoh)
         plant = c.plant_id or c.id
         if c.loop.trigger == "sample" and c.loop.wait == "block":
-            self.meas_sub, self.meas_q = queued(s, key(c.prefix, plant, "meas"), MEAS_QUEUE_MAX)
+            # frames that can never be the next sample are refused on Zenoh's thread (_admit): under a flood of them
+            # the loop's queue holds the plant's samples, and the loop does no work for them
+            self.meas_sub, self.meas_q = queued(s, key(c.prefix, plant, "meas"), MEAS_QUEUE_MAX, admit=self._admit)
         else:
             self.meas_sub = latest(s, key(c.prefix, plant, "meas"), c.loop.catch_up)
         self.cmd_pub = publisher(s, key(c.prefix, c.id, "cmd"))
@@ -211,7 +238,8 @@ class Daemon(DaemonQueries):
         seq, t = ranges["seq"], ranges["t"]
         return TickWriter(k, self._hist_seq, self._hist_u, self._hist_r, CMD.struct.format, CMD.magic, VERSION,
                           **ring, meas_format=MEAS.struct.format, meas_magic=MEAS.magic, v_min=c.meas_v_min_V,
-                          v_max=c.meas_v_max_V, i_max=c.meas_i_max_A, seq_limit=seq[1], t_min=t[0], t_limit=t[1])
+                          v_max=c.meas_v_max_V, i_max=c.meas_i_max_A, seq_limit=seq[1], t_min=t[0], t_limit=t[1],
+                          u_max=self._u_max, max_gap=self._max_gap, period=self.period_s, clock_tol=self._clock_tol)
 
     def close(self) -> None:
         if not self.failure:
@@ -446,6 +474,10 @@ class Daemon(DaemonQueries):
         except DecodeError as e:
             self._reject(f"{nb.id}.{e.field}: invalid", now, e.reason)
             return None
+        for k, name, bound in self._z_bounds:  # finite, but no power a component on this bus can carry
+            if not abs(v[k]) <= bound:
+                self._reject(f"{nb.id}.{name}: out of range", now, f"|{v[k]:g}| above {bound:g}")
+                return None
         nb.seq, nb.t, nb.P, nb.P_dot, nb.Qdot = v[0], v[1], v[2], v[3], v[4]
         nb.rx_ns = now
         nb.count += 1
@@ -513,10 +545,72 @@ class Daemon(DaemonQueries):
         j = seq & (HIST - 1)
         self._hist_seq[j], self._hist_u[j], self._hist_r[j] = seq, u, du
 
+    def _admit(self, payload: bytes) -> bool:
+        """The measurement subscriber's thread (Zenoh's, not the loop's): whether a frame goes on the loop's queue.
+        One that does not decode, or of a seq already passed while the loop is stepping on samples (no resync can be
+        due), is counted here by reason (rx_rejected) and dropped: a flood of them neither displaces the plant's
+        samples from the queue nor costs the loop any work. The loop's _checked stays the reference for the rest."""
+        try:
+            v = MEAS.decode(payload)
+        except DecodeError as e:
+            self._count_rx(f"meas.{e.field}: invalid", e.reason)
+            return False
+        seq, last = v[0], self._last_seq
+        if seq <= last and not (seq == 0 and last > 0) and _now_ns() - self._accepted_ns < self._resync_ns:
+            self._count_rx("meas.seq: duplicate or not increasing", "")
+            return False
+        return True
+
+    def _count_rx(self, reason: str, detail: str) -> None:
+        with self._rx_lock:
+            rx = self.rx_rejected
+            rx[reason] = rx.get(reason, 0) + 1
+        self.last_reject = f"{reason} ({detail})" if detail else reason
+
+    def _out_of_range(self, v: tuple) -> tuple[str, str] | None:
+        """(reason, detail) of a measurement whose values are not plausible (config meas_*), else None."""
+        c = self.cfg
+        if not c.meas_v_min_V <= v[3] <= c.meas_v_max_V:
+            return "meas.v: out of range", f"{v[3]:g} V not in [{c.meas_v_min_V:g}, {c.meas_v_max_V:g}]"
+        if abs(v[2]) > c.meas_i_max_A or abs(v[5]) > c.meas_i_max_A:
+            field = "i" if abs(v[2]) > c.meas_i_max_A else "i_load"
+            return f"meas.{field}: out of range", f"beyond ±{c.meas_i_max_A:g} A"
+        if not abs(v[4]) <= self._u_max:
+            return "meas.u: out of range", f"{v[4]:g} V beyond ±{self._u_max:g} V"
+        return None
+
+    def _follows(self, seq: int, t: float, v: tuple) -> bool:
+        """Whether v is on the clock of a sample (seq, t): at most _max_gap samples after it, its t within _clock_tol
+        of t + gap x period (the plant's clock; docs/protocol.md)."""
+        g = v[0] - seq
+        return 0 < g <= self._max_gap and abs((v[1] - t) - g * self.period_s) <= self._clock_tol
+
+    def _clock_candidate(self, v: tuple, now: int) -> bool:
+        """A frame in range refused for its seq or t: one more of a candidate clock if it follows the previous such
+        frame; whether the candidate is to be adopted now (meas_resync_frames in a row, and no sample stepped on for
+        the stale time: a lone forged frame, or a few among the plant's samples, never are)."""
+        ch = self._chain
+        self._chain_n = self._chain_n + 1 if ch is not None and self._follows(ch[0], ch[1], v) else 1
+        self._chain = (v[0], v[1])
+        return self._chain_n >= self.cfg.meas_resync_frames and now - self._accepted_ns >= self._resync_ns
+
+    def _resync(self, v: tuple) -> tuple:
+        """Adopt v's clock: the core re-initialised and v the first sample of a new history (as at a plant restart),
+        counted (clock_resyncs) and recorded."""
+        self.core.reset()
+        old = self._last_seq
+        self._last_seq = -1
+        self._chain, self._chain_n = None, 0
+        self.clock_resyncs += 1
+        if self.recorder is not None:
+            self.recorder.offer(self.t_ev, v[1], (v[1], v[0], "clock_resync", json.dumps(
+                {"from_seq": old, "to_seq": v[0], "t": v[1]})))
+        return v
+
     def _checked(self, payload: bytes, now: int) -> tuple | None:
-        """The measurement's values if it is the next sample to step on (a restart re-initialises the core first);
-        else None, after rejecting it (counted, named; malformed, a seq already passed: no answer) or holding it
-        (answered with du/dt = 0: out of range, time not advancing)."""
+        """The measurement's values if it is the next sample to step on (a restart re-initialises the core first, a
+        resync too); else None, after rejecting it (counted, named; malformed, a seq already passed, a frame off the
+        plant's clock: no answer) or holding it (answered with du/dt = 0: out of range, time not advancing)."""
         try:
             v = MEAS.decode(payload)
         except DecodeError as e:
@@ -527,23 +621,36 @@ class Daemon(DaemonQueries):
         # a seq already passed, whatever its values: no plant waits for its answer, so it gets none (a hold would answer
         # a sample long gone, one more put on the command key, whose puts drop under congestion: decision 0031)
         if seq <= self._last_seq and not restart:
+            if self._out_of_range(v) is None and self._clock_candidate(v, now):
+                return self._resync(v)
             self._reject("meas.seq: duplicate or not increasing", now)
             return None
-        c = self.cfg
-        if not c.meas_v_min_V <= v[3] <= c.meas_v_max_V:
-            return self._hold(v, now, "meas.v: out of range",
-                              f"{v[3]:g} V not in [{c.meas_v_min_V:g}, {c.meas_v_max_V:g}]")
-        if abs(v[2]) > c.meas_i_max_A or abs(v[5]) > c.meas_i_max_A:
-            field = "i" if abs(v[2]) > c.meas_i_max_A else "i_load"
-            return self._hold(v, now, f"meas.{field}: out of range", f"beyond ±{c.meas_i_max_A:g} A")
+        bad = self._out_of_range(v)
+        if bad is not None:
+            return self._hold(v, now, *bad)
         if restart:  # the plant restarted: its history is not ours any more
             self.core.reset()
             self._last_seq = -1
             self.restarts += 1
             if self.recorder is not None:
                 self.recorder.offer(self.t_ev, t, (t, 0, "plant_restart", "{}"))
-        if self.last_sample is not None and self._last_seq >= 0 and t <= self.last_sample[1]:
-            return self._hold(v, now, "meas.t: not after the previous sample")
+        ls = self.last_sample
+        if ls is not None and self._last_seq >= 0:
+            if t <= ls[1]:
+                if self._clock_candidate(v, now):
+                    return self._resync(v)
+                return self._hold(v, now, "meas.t: not after the previous sample")
+            if not self._follows(self._last_seq, ls[1], v):
+                if self._clock_candidate(v, now):
+                    return self._resync(v)
+                g = seq - self._last_seq
+                if g > self._max_gap:
+                    self._reject("meas.seq: jump", now, f"{g} samples after the last one stepped on, above "
+                                                        f"{self._max_gap}")
+                else:
+                    self._reject("meas.t: off the plant's clock", now,
+                                 f"t {t!r} s, {g} samples after t {ls[1]!r} s at {self.period_s:g} s each")
+                return None
         return v
 
     def _tick(self, payload: bytes, now: int) -> None:
@@ -563,8 +670,14 @@ class Daemon(DaemonQueries):
             ls = self.last_sample
             v = fast.accept(payload, self._last_seq, ls[1] if ls else 0.0)
             if v is not None:
+                self._accepted_ns = now
+                self._chain_n = 0
                 return v
-        return self._checked(payload, now)
+        v = self._checked(payload, now)
+        if v is not None:
+            self._accepted_ns = now
+            self._chain_n = 0
+        return v
 
     def _step(self, v: tuple, now: int) -> None:
         """The tick's second half, for the sample v (_sample's): P^{r,in} from the neighbours, the core's step, the
@@ -636,6 +749,12 @@ class Daemon(DaemonQueries):
                 rec.offer(self.t_loop, t, (t, n, st.overruns, st.no_new_sample, st.missing_samples,
                                            st.window_exec_max, st.window_period_max))
                 st.window_exec_max = st.window_period_max = 0
+                rx = sum(self.rx_rejected.values())
+                if rx != self._rx_logged:  # frames refused on receipt, summarised (at most one event a 1000 ticks)
+                    rec.offer(self.t_ev, t, (t, max(self._last_seq, 0), "reject",
+                                             f"{rx - self._rx_logged} measurements refused on receipt "
+                                             f"(last: {self.last_reject})"))
+                    self._rx_logged = rx
             if estimated and n % self._est_every == self._est_phase:
                 rec.offer(self.t_est, t, (t, *self.core.est_record()))
         if n % self._z_every == 0 and self.core.out.est is not None:

@@ -3,9 +3,11 @@ GIL, in one spawned worker process at background priority (``service.forecast`` 
 
 from __future__ import annotations
 
+import os
+
 from schemas.scenario import CircuitParams, ControllerConfig
 from service.forecast import OutgoingForecast, forecast_outgoing, widen_to_grid
-from service.priority import FORECAST_NICE, background, in_normal_thread, leave_realtime
+from service.priority import FORECAST_NICE, background_child, in_normal_thread, leave_realtime
 
 
 def _worker_ready() -> bool:
@@ -68,8 +70,9 @@ class ForecastWorker:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
+        # started from in_normal_thread's short-lived thread: the worker watches its parent (die_with_parent)
         return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=background, initargs=(FORECAST_NICE,))
+                                   initializer=background_child, initargs=(FORECAST_NICE, os.getpid(), False))
 
     def request(self, window: int, box: tuple[float, float, float, float], controller: ControllerConfig,
                 version: int = 0) -> None:

@@ -20,10 +20,49 @@ from service.daemon.bus import key
 from service.daemon.loop_stats import HIST
 
 LOOP_DELAY_EVERY_NS = 1_000_000_000  # status queries re-estimate the loop delay at most this often
+REFUSED_EVENT_EVERY_NS = 1_000_000_000  # at most one recorded event and stderr line per this (all are counted)
+
+
+ERROR_TEXT_MAX = 300  # a refusal quotes at most this much of what it refuses (never the request back)
+
+
+def brief(text: str, limit: int = ERROR_TEXT_MAX) -> str:
+    """An error text cut to ``limit`` characters, saying how long it was: a refusal names the field and why, and never
+    echoes a large value back."""
+    return text if len(text) <= limit else f"{text[:limit]}... [{len(text)} characters, cut]"
 
 
 class DaemonQueries:
-    """The query side of ``Daemon`` (a mixin: it reads the daemon's state, and writes only ``_pending``)."""
+    """The query side of ``Daemon`` (a mixin: it reads the daemon's state, and writes only ``_pending`` and its
+    count of refused config requests)."""
+
+    config_refused = 0  # config/set requests (and sets sent to config) answered with an error
+    last_config_refused = ""
+    _refused_shown: tuple[int | None, int] = (None, 0)  # (monotonic ns of the last event/line, refusals since)
+    _refused_lock = threading.Lock()
+
+    def _refused(self, what: str, error: str) -> None:
+        """A config request answered with an error: counted, and, at most once per REFUSED_EVENT_EVERY_NS (saying
+        how many it stands for), one stderr line and a ``config_refused`` event in the log. Runs on a query
+        thread, never the loop's."""
+        text = f"{what}: {error}"
+        now = time.monotonic_ns()
+        with self._refused_lock:
+            self.config_refused += 1
+            self.last_config_refused = text
+            last, held = self._refused_shown
+            if last is not None and 0 <= now - last < REFUSED_EVENT_EVERY_NS:
+                self._refused_shown = (last, held + 1)
+                return
+            self._refused_shown = (now, 0)
+        if held:
+            text = f"{text} [and {held} more since the last of these]"
+        print(f"energyctl[{self.cfg.id}]: refused {text} ({self.config_refused} refused so far)", file=sys.stderr,
+              flush=True)
+        rec = self.recorder
+        if rec is not None:
+            t = self.last_sample[1] if self.last_sample else 0.0
+            rec.offer(self.t_ev, t, (t, max(self._last_seq, 0), "config_refused", text))
 
     def status(self) -> dict:
         now = time.monotonic_ns()
@@ -52,7 +91,9 @@ class DaemonQueries:
             "feasibility": {"violations": self.feas.count, "tau_prime_s": self._tau_p,
                             "recent": [v.__dict__ for v in self.feas.violations],
                             "forecast": self.forecaster.status() if self.forecaster is not None else None},
-            "rejected": dict(self.rejected), "last_reject": self.last_reject,
+            "rejected": self._rejected_counts(), "last_reject": self.last_reject,
+            "config_refused": self.config_refused, "last_config_refused": self.last_config_refused,
+            "clock_resyncs": self.clock_resyncs, "refused_requests": self.refused_requests,
             "reference": self.reference, "degraded_reason": self.degraded_reason if self.state == "degraded" else "",
             "plant_restarts": self.restarts,
             "late_command_ticks": self.late_ticks,
@@ -60,6 +101,13 @@ class DaemonQueries:
             "loop_delay": self._loop_delay(),
             "logging": self._logging_status(),
         }
+
+    def _rejected_counts(self) -> dict[str, int]:
+        """The loop's rejections and those refused on receipt (Daemon._admit), by reason."""
+        out = dict(self.rejected)
+        for k, n in list(self.rx_rejected.items()):
+            out[k] = out.get(k, 0) + n
+        return out
 
     def _loop_delay(self) -> dict:
         """The loop delay measured over this plant epoch's newest ticks (service/core/delay.py), against the delay the
@@ -99,19 +147,42 @@ class DaemonQueries:
     def _config_reply(self, query) -> tuple[bool, dict]:
         if query.payload is not None or "set" in str(query.parameters).split(";")[0].split("&"):
             where = key(self.cfg.prefix, self.cfg.id, "config/set")
+            self._refused("config", f"read-only here; sets go to {where}")
             return False, {"error": f"config is read-only here; sets go to {where}"}
         return True, {"controller": self.core.cfg.model_dump(), "state": self.state,
                       "config_version": self.config_version}
 
     def _config_set_reply(self, query) -> tuple[bool, dict]:
+        limit = self.cfg.query_max_bytes
+        p = query.payload
+        try:
+            size = len(p) if p is not None else 0  # a Zenoh payload's length, without taking its bytes
+        except TypeError:  # a payload that does not tell it: its bytes, still before they are parsed
+            size = len(p.to_bytes())
+        if size > limit:  # measured before it is read: not parsed, not validated, not echoed
+            self.refused_requests += 1
+            ok, body = False, {"error": f"a request of {size} bytes, above query_max_bytes = {limit}; not read"}
+        else:
+            try:
+                ok, body = self._config_set(query)
+            except Exception as e:  # noqa: BLE001 - whatever the request made fail: refused, briefly
+                ok, body = False, {"error": f"set: {type(e).__name__}: {e}"}
+        if not ok:  # every refusal counted and logged once here (config_refused), its text never the request
+            body = {"error": brief(str(body.get("error", "")))}
+            self._refused("config/set", body["error"])
+        return ok, body
+
+    def _config_set(self, query) -> tuple[bool, dict]:
         try:
             req = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
             sets = req.get("set") if isinstance(req, dict) else None
             if not isinstance(sets, list) or not sets or not all(isinstance(x, str) for x in sets):
                 raise ScenarioError("set: expected a non-empty list of 'key=value' strings, as {\"set\": [...]}")
-        except (ValueError, ScenarioError) as e:
-            return False, {"error": str(e)}
-        return self.apply_sets(sets)
+        except (ValueError, ScenarioError, RecursionError) as e:
+            ok, body = False, {"error": str(e) if not isinstance(e, RecursionError) else "set: nested too deeply"}
+        else:
+            ok, body = self.apply_sets(sets)
+        return ok, body
 
     def apply_sets(self, sets: list[str]) -> tuple[bool, dict]:
         """Validate ``controller.X=value`` / ``lifecycle=active|inactive`` and hand them to the loop."""
@@ -140,5 +211,6 @@ class DaemonQueries:
             self._pending = (new, ev, new.model_dump_json())
             if not ev.wait(2.0):
                 return False, {"error": "not applied: the loop did not tick within 2 s"}
-        print(f"energyctl[{self.cfg.id}]: config set {sets} -> version {self.config_version}", file=sys.stderr)
+        print(f"energyctl[{self.cfg.id}]: config set {brief(str(sets))} -> version {self.config_version}",
+              file=sys.stderr)
         return True, {"applied": sets, "config_version": self.config_version, "controller": self.core.cfg.model_dump()}

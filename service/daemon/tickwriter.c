@@ -22,9 +22,12 @@ typedef struct {
     double v_min, v_max, i_max;
     unsigned long long seq_limit;  /* accept(): seq < seq_limit, t_min <= t < t_limit (schemas.codec MEAS.ranges) */
     double t_min, t_limit;
+    double u_max;            /* accept(): |u| <= u_max */
+    long long max_gap;       /* accept(): seq - last_seq <= max_gap (samples) */
+    double period, clock_tol; /* accept(): |(t - last_t) - (seq - last_seq) * period| <= clock_tol */
 } TickWriter;
 
-static void put_u64(unsigned char *p, double x) { uint64_t q = (uint64_t)x; memcpy(p, &q, 8); }
+static void put_u64(unsigned char *p, uint64_t q) { memcpy(p, &q, 8); }
 static void put_f64(unsigned char *p, double x) { memcpy(p, &x, 8); }
 
 static void TickWriter_release(TickWriter *self)
@@ -39,21 +42,26 @@ static void TickWriter_release(TickWriter *self)
 
 /* TickWriter(kernel, hist_seq, hist_u, hist_r, cmd_format, cmd_magic, version, ring=None, ring_index=None, slots=0,
  *            group_id=0, group_format="", meas_format="", meas_magic=0, v_min=0, v_max=0, i_max=0,
- *            seq_limit=2^53, t_min=0, t_limit=2^32) */
+ *            seq_limit=2^53, t_min=0, t_limit=2^32, u_max=inf, max_gap=2^62, period=0, clock_tol=inf);
+ *            seq_limit at most 2^62 (seq is an int64 here) */
 static int TickWriter_init(TickWriter *self, PyObject *args, PyObject *kw)
 {
     static char *names[] = {"kernel", "hist_seq", "hist_u", "hist_r", "cmd_format", "cmd_magic", "version", "ring",
                             "ring_index", "slots", "group_id", "group_format", "meas_format", "meas_magic", "v_min",
-                            "v_max", "i_max", "seq_limit", "t_min", "t_limit", NULL};
+                            "v_max", "i_max", "seq_limit", "t_min", "t_limit", "u_max", "max_gap", "period",
+                            "clock_tol", NULL};
     PyObject *kern, *hs, *hu, *hr, *ring = Py_None, *widx = Py_None;
     const char *cmd_fmt, *group_fmt = "", *meas_fmt = "";
     int magic, version, group_id = 0, meas_magic = 0;
     long long slots = 0;
     double v_min = 0.0, v_max = 0.0, i_max = 0.0, t_min = 0.0, t_limit = 4294967296.0;
     unsigned long long seq_limit = 1ULL << 53;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLissidddKdd", names, &KernelType, &kern, &hs, &hu, &hr,
-                                     &cmd_fmt, &magic, &version, &ring, &widx, &slots, &group_id, &group_fmt,
-                                     &meas_fmt, &meas_magic, &v_min, &v_max, &i_max, &seq_limit, &t_min, &t_limit))
+    double u_max = HUGE_VAL, period = 0.0, clock_tol = HUGE_VAL;
+    long long max_gap = 1LL << 62;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOOsii|OOLissidddKdddLdd", names, &KernelType, &kern, &hs, &hu,
+                                     &hr, &cmd_fmt, &magic, &version, &ring, &widx, &slots, &group_id, &group_fmt,
+                                     &meas_fmt, &meas_magic, &v_min, &v_max, &i_max, &seq_limit, &t_min, &t_limit,
+                                     &u_max, &max_gap, &period, &clock_tol))
         return -1;
     TickWriter_release(self);
     if (strcmp(cmd_fmt, CMD_FORMAT) != 0) {
@@ -67,12 +75,12 @@ static int TickWriter_init(TickWriter *self, PyObject *args, PyObject *kw)
     }
     self->meas_magic = (unsigned char)meas_magic;
     self->v_min = v_min; self->v_max = v_max; self->i_max = i_max;
-    if (seq_limit > (1ULL << 53)) {  /* step() carries seq as a double: exact only below 2^53 */
-        PyErr_Format(PyExc_ValueError, "TickWriter: seq_limit %llu above 2^53, where a double stops being exact",
-                     seq_limit);
+    if (seq_limit > (unsigned long long)SEQ_MAX) {  /* step() carries seq as an integer below 2^62 */
+        PyErr_Format(PyExc_ValueError, "TickWriter: seq_limit %llu above 2^62", seq_limit);
         return -1;
     }
     self->seq_limit = seq_limit; self->t_min = t_min; self->t_limit = t_limit;
+    self->u_max = u_max; self->max_gap = max_gap; self->period = period; self->clock_tol = clock_tol;
     if (PyObject_GetBuffer(hs, &self->hseq, PyBUF_WRITABLE) < 0 || PyObject_GetBuffer(hu, &self->hu, PyBUF_WRITABLE)
         < 0 || PyObject_GetBuffer(hr, &self->hr, PyBUF_WRITABLE) < 0)
         return -1;
@@ -118,23 +126,28 @@ static void TickWriter_dealloc(TickWriter *self)
 static PyObject *TickWriter_step(TickWriter *self, PyObject *const *args, Py_ssize_t nargs)
 {
     double x[8];
-    if (!float_args(args, nargs, 8, x, "step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot)"))
+    long long seq;  /* an integer all the way: the command answers exactly the sample's seq */
+    if (!seq_float_args(args, nargs, 8, &seq, x, "step(seq, t, i, v, u, i_load, P_r_in, P_r_in_dot)"))
         return NULL;
+    if (seq < 0) {
+        PyErr_SetString(PyExc_ValueError, "TickWriter.step: seq < 0");
+        return NULL;
+    }
     if (self->k == NULL || self->hseq.obj == NULL) {
         PyErr_SetString(PyExc_RuntimeError, "TickWriter: released");
         return NULL;
     }
     Kernel *k = self->k;
-    kernel_step(k, x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
+    kernel_step(k, seq, x[1], x[2], x[3], x[4], x[5], x[6], x[7]);
     const double *o = k->o;
-    const double seq = x[0], t = x[1], du = o[O_DU], dn = o[O_DU_NEXT];
+    const double t = x[1], du = o[O_DU], dn = o[O_DU_NEXT];
     const unsigned char lim = o[O_LIMITED] != 0.0;
     unsigned char cmd[CMD_SIZE];
     cmd[0] = self->cmd_magic;
     cmd[1] = self->version;
-    put_u64(cmd + 2, seq); put_f64(cmd + 10, t); put_f64(cmd + 18, du); put_f64(cmd + 26, dn);
+    put_u64(cmd + 2, (uint64_t)seq); put_f64(cmd + 10, t); put_f64(cmd + 18, du); put_f64(cmd + 26, dn);
     cmd[34] = lim;
-    long long j = (long long)seq & self->hist_mask;
+    long long j = seq & self->hist_mask;
     ((int64_t *)self->hseq.buf)[j] = (int64_t)seq;
     ((double *)self->hu.buf)[j] = x[4];
     ((double *)self->hr.buf)[j] = du;
@@ -151,10 +164,10 @@ static PyObject *TickWriter_step(TickWriter *self, PyObject *const *args, Py_ssi
                 p[0] = self->group_id;
                 put_f64(p + 1, t);
                 p += 9;  /* meas: seq, t, i, v, u, i_load */
-                put_u64(p, seq);
+                put_u64(p, (uint64_t)seq);
                 for (int m = 1; m < 6; m++) put_f64(p + 8 * m, x[m]);
                 p += 48;  /* z_in: seq, t, P_r_in, P_r_in_dot, stepped */
-                put_u64(p, seq); put_f64(p + 8, t); put_f64(p + 16, x[6]); put_f64(p + 24, x[7]);
+                put_u64(p, (uint64_t)seq); put_f64(p + 8, t); put_f64(p + 16, x[6]); put_f64(p + 24, x[7]);
                 p[32] = 1;
                 p += 33;  /* cmd: seq, t, du/dt, du/dt next, limited */
                 memcpy(p, cmd + 2, CMD_SIZE - 2);
@@ -178,9 +191,10 @@ static PyObject *TickWriter_step(TickWriter *self, PyObject *const *args, Py_ssi
 
 /* accept(payload, last_seq, last_t) -> the measurement's values (seq, t, i, v, u, i_load), exactly as schemas.codec
  * MEAS.decode gives them, when the daemon's checks in _tick would take it as the next ordinary sample: well formed,
- * finite and admissible (seq < seq_limit, t in [t_min, t_limit)), v in [v_min, v_max], |i| and |i_load| <= i_max, seq
- * after last_seq >= 0 (not the first sample or a restart), t after last_t; else None, and the Python checks decide
- * (and name the reason). */
+ * finite and admissible (seq < seq_limit, t in [t_min, t_limit)), v in [v_min, v_max], |i| and |i_load| <= i_max,
+ * |u| <= u_max, seq after last_seq >= 0 (not the first sample or a restart) by at most max_gap, t after last_t and
+ * within clock_tol of last_t + (seq - last_seq) * period (the plant's clock: docs/protocol.md); else None, and the
+ * Python checks decide (and name the reason). */
 static PyObject *TickWriter_accept(TickWriter *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs != 3) {
@@ -207,11 +221,14 @@ static PyObject *TickWriter_accept(TickWriter *self, PyObject *const *args, Py_s
     for (int j = 0; j < 5; j++)
         if (!isfinite(x[j]))
             Py_RETURN_NONE;
-    if (!(self->v_min <= x[2] && x[2] <= self->v_max) || fabs(x[1]) > self->i_max || fabs(x[4]) > self->i_max)
+    if (!(self->v_min <= x[2] && x[2] <= self->v_max) || fabs(x[1]) > self->i_max || fabs(x[4]) > self->i_max
+        || !(fabs(x[3]) <= self->u_max))
         Py_RETURN_NONE;
     if (seq >= self->seq_limit || !(self->t_min <= x[0] && x[0] < self->t_limit))
         Py_RETURN_NONE;
-    if ((long long)seq <= last_seq || !(x[0] > last_t))
+    if ((long long)seq <= last_seq || !(x[0] > last_t) || (long long)seq - last_seq > self->max_gap)
+        Py_RETURN_NONE;
+    if (!(fabs((x[0] - last_t) - (double)((long long)seq - last_seq) * self->period) <= self->clock_tol))
         Py_RETURN_NONE;
     return Py_BuildValue("(Kddddd)", (unsigned long long)seq, x[0], x[1], x[2], x[3], x[4]);
 }

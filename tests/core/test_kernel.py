@@ -243,3 +243,38 @@ def test_samples_answered_outside_the_law_same_answer(delay):
             o = core.step(Sample(*r[:6]), Incoming(r[6], r[7]))
             seen[j].append((o.du_dt, o.du_dt_next, o.i_pred, o.v_pred, o.u_pred, core.applied_rate()))
     assert seen[0] == seen[1]
+
+
+@pytest.mark.parametrize("start", [2**53 - 4, 2**62 - 100])
+def test_sequence_numbers_above_2_to_the_53_stay_exact_and_the_cores_agree(start):
+    """The C tick carries seq as an integer: above 2^53 a double merges neighbours (2^53 + 1 -> 2^53), so the
+    observer saw a gap where there was none, the late-command check and the plan lookup missed, and the command
+    answered a seq the sample did not have. Steps, holds and skipped samples across 2^53, both cores."""
+    scn, rows = _stream(80)
+    T = 1.0 / scn.timing.control_rate_hz
+    ctl = scn.controller.model_copy(update={"observer_gain": 0.2, "late_detect_V": 0.002})
+    cores = [ControlCore(ctl, scn.model, T, 3), make_core(ctl, scn.model, T, 3, "c")]
+    seen = [[], []]
+    for j, core in enumerate(cores):
+        for k, r in enumerate(rows):
+            seq = start + k
+            if k in (30, 31):
+                continue  # skipped
+            if k == 40:
+                core.hold(seq)
+                continue
+            o = core.step(Sample(seq, *r[1:6]), Incoming(r[6], r[7]))
+            seen[j].append((o.seq, o.du_dt, o.du_dt_next, o.i_pred, o.v_pred, o.u_pred, o.late, core.applied_rate()))
+        assert [s[0] for s in seen[j]] == [start + k for k in range(len(rows)) if k not in (30, 31, 40)]
+    assert seen[0] == seen[1]
+
+
+def test_the_compiled_core_refuses_a_seq_it_cannot_carry_exactly():
+    scn, rows = _stream(3)
+    core = make_core(scn.controller, scn.model, 1e-4, 2, "c")
+    with pytest.raises(ValueError, match="seq"):
+        core.step(Sample(2.0**60, *rows[0][1:6]), Incoming(0.0, 0.0))  # a float that big is not exact
+    with pytest.raises(ValueError, match="seq"):
+        core.step(Sample(2**63, *rows[0][1:6]), Incoming(0.0, 0.0))
+    core.step(Sample(7.0, *rows[0][1:6]), Incoming(0.0, 0.0))  # an integral float below 2^53, as before
+    assert core.out.seq == 7

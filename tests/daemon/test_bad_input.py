@@ -142,6 +142,34 @@ def test_invalid_config_sets_are_refused_with_the_field(daemon):
     assert daemon.core.cfg.K_per_s == 2000.0
 
 
+@pytest.mark.parametrize(("value", "field"), [
+    ("controller.K_per_s=true", "K_per_s"),  # was taken as 1.0: v reached 191 V
+    ('controller.K_per_s="2000"', "K_per_s"),
+    ('controller.plan_next_period="yes"', "plan_next_period"),
+    ("controller.delay_compensation_samples=3.0", "delay_compensation_samples"),
+    ("controller.v_ref_V=1e300", "v_ref_V"),
+])
+def test_lax_config_sets_are_refused_and_nothing_changes(daemon, value, field):
+    before = daemon.core.cfg
+    ok, body = daemon.apply_sets([value])
+    assert not ok and f"\n  {field}: " in body["error"]
+    assert daemon.core.cfg is before and daemon._pending is None
+
+
+def test_an_integer_set_for_a_float_gain_is_taken(daemon):
+    import threading
+
+    t = threading.Thread(target=lambda: daemon.apply_sets(["controller.K_per_s=1500"]), daemon=True)
+    t.start()
+    from clients.live import wait_until
+
+    assert wait_until(lambda: daemon._pending is not None, 5.0)  # validated, handed to the loop
+    assert daemon._pending[0].K_per_s == 1500.0
+    daemon._apply_pending()  # what the loop does before its next tick
+    t.join(5.0)
+    assert daemon.core.cfg.K_per_s == 1500.0
+
+
 def test_stale_measurements_degrade_and_fresh_ones_resume(daemon):
     import threading
 

@@ -212,3 +212,26 @@ def test_accept_takes_exactly_the_samples_the_python_checks_step_on(seq, t, i, v
     assert got == want
     if got is not None:
         assert type(got[0]) is int and got == MEAS.decode(payload)  # the very tuple decode gives
+
+
+def test_the_compiled_tick_answers_a_seq_above_2_to_the_53_with_that_seq():
+    """The command's seq is the sample's, exactly: the tick carried it as a double, so 2^53 + 1 went out as 2^53 (the
+    plant then took the answer for another sample). The wire bound (schemas.codec: seq < 2^53) keeps such a sample
+    out of a daemon; the tick itself no longer depends on it."""
+    from array import array
+
+    from service._kernel import Kernel, TickWriter
+
+    from schemas.scenario import Scenario
+    from service.core import make_core
+
+    scn = Scenario()
+    core = make_core(scn.controller, scn.model, 1e-4, 2, "c")
+    k = core._k
+    assert isinstance(k, Kernel)
+    hist = (array("q", [-1] * 8), array("d", [0.0] * 8), array("d", [0.0] * 8))
+    tw = TickWriter(k, *hist, CMD.struct.format, CMD.magic, VERSION, seq_limit=2**53)
+    for seq in (2**53 + 1, 2**53 + 2, 2**53 + 3):
+        payload = tw.step(seq, 1.0, 15.0, 80.0, 80.15, 15.0, -1200.0, 0.0)[0]
+        assert struct.unpack_from("<Q", payload, 2)[0] == seq  # the command layout: magic, version, seq
+        assert hist[0][seq & 7] == seq and core.out.seq == seq
