@@ -54,7 +54,7 @@ def network_tables(m: dict) -> str:
     src = render(["source", "share %", "target %", "error pp", "P W", "v_min V", "v_max V", "mode", "feas viol"],
                  [[s, _num(x["share_pct"], ".1f"), _num(x["share_target_pct"], ".1f"), _num(x["sharing_error_pp"]),
                    _num(x["P_steady_W"], ".0f"), _num(x["v_min"]), _num(x["v_max"]), str(x["final_mode"]),
-                   str(x["feasibility_violations"])] for s, x in m["sources"].items()])
+                   _num(x["feasibility_violations"], "d")] for s, x in m["sources"].items()])
     bus = render(["bus", "v_min V", "v_max V", "steady dev %"],
                  [[b, _num(x["v_min"]), _num(x["v_max"]), _num(x["ss_dev_pct"])] for b, x in m["buses"].items()])
     rows = []

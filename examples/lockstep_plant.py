@@ -77,7 +77,9 @@ def open_session(endpoint: str) -> zenoh.Session:
     cfg = zenoh.Config()
     cfg.insert_json5("mode", '"peer"')
     cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    cfg.insert_json5("listen/endpoints", "[]")
+    # a port of its own on loopback: a third process (a load that answers these measurements) links to it directly;
+    # the daemon does not route between its peers, and a peer that listens nowhere is reached by nobody else
+    cfg.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
     cfg.insert_json5("scouting/multicast/enabled", "false")
     return zenoh.open(cfg)
 

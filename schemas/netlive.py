@@ -78,7 +78,8 @@ def source_component(net: NetworkScenario, source: str, *, prefix: str = "energy
                        P_max_W=ComponentConfig.model_fields["meas_i_max_A"].default * 2.5 * net.nominal_v_V,
                        idle_tau_s=net.layer.idle_tau_s, open_idle=net.layer.open_idle,
                        resume_ramp_s=net.layer.resume_ramp_s, fallback_idle_power_W=net.layer.fallback_idle_power_W,
-                       extrapolate_s=net.layer.extrapolate_s, connect_at_s=connect_at_s)
+                       extrapolate_s=net.layer.extrapolate_s, connect_at_s=connect_at_s,
+                       connected_at_start=src.connected, fallback=net.fallback_of(source))
     v_nom = net.nominal_v_V
     return ComponentConfig(
         id=source, prefix=prefix, zenoh=zenoh or ZenohConfig(), model=src.model_params(), controller=src.controller,

@@ -208,6 +208,13 @@ class LayerConfig(Strict):
         default=None, description="in fallback (P^{r,in} stale) a source idles below this |own terminal power| "
                                   "instead of idle_power_W, W (None: idle_power_W). At 1 kHz a source left in "
                                   "fallback near zero current rang up the mapping's fast mode u/(i L) and diverged")
+    fallback: Literal["last-allocation", "own-terminal"] | None = Field(
+        default=None, description="a source whose P^{r,in} is stale keeps the last P^{r,in} it was allocated (its "
+                                  "share; a change of its own terminal's power since is followed on top), or follows "
+                                  "its own terminal's power alone (the sources then split by their lines and v_refs: "
+                                  "a just plugged-in one kept what its v_ref gave it, 228 of its 600 W). None: "
+                                  "last-allocation for the nested law, own-terminal for the others (the paper's law "
+                                  "regulates its power to P^{r,in}, so a kept gap grows without bound)")
     resume_ramp_s: Secs = Field(default=0.0, description="a source whose P^{r,in} is fresh again after a fallback "
                                                            "moves from its own terminal's power to it linearly over "
                                                            "this long, s (0: at once; a returning coordinator then "
@@ -289,6 +296,12 @@ class NetworkScenario(Strict):
             raise ValueError("; ".join(errors))
         return self
 
+    def fallback_of(self, source: str) -> str:
+        """The source's fallback (layer.fallback, or by its law when that is None)."""
+        if self.layer.fallback is not None:
+            return self.layer.fallback
+        return "last-allocation" if self.sources[source].controller.kind == "nested" else "own-terminal"
+
     def nodes(self) -> list[str]:
         """Every node: the sources' terminals, then the buses, in file order."""
         return [*self.sources, *self.buses]
@@ -324,6 +337,12 @@ def topology_errors(n: NetworkScenario) -> list[str]:
     for name in n.links:
         if name != "*" and name not in n.sources:
             out.append(f"links.{name}: not a source (or '*')")
+    if n.layer.fallback == "last-allocation":
+        for name, src in n.sources.items():
+            if src.controller.kind != "nested":
+                out.append(f"layer.fallback: 'last-allocation' needs the nested law; sources.{name} has "
+                           f"{src.controller.kind!r} (its power follows P^{{r,in}}: a kept gap grows), use "
+                           "'own-terminal'")
     if out:
         return out
     # every node reachable from the first source over the lines (whatever their breakers' state)

@@ -69,6 +69,9 @@ class LoopStatus(Reply):
                                            "computed a command, µs; absent until one did")
     meas_queue_dropped: int = Field(ge=0, description="sample trigger (wait=block): measurements the full queue "
                                                       "dropped while the loop thread was held up; else 0")
+    meas_skipped: int = Field(ge=0, description="sample trigger (wait=block): frames the loop passed over, unchecked, "
+                                                "to answer the newest loop.catch_up after a wait or a stall (counted, "
+                                                "not rejected); else 0")
 
 
 class StatusEstimate(Reply):

@@ -503,7 +503,8 @@ class Coordinator:
             "sources": {name: {"share": layer.shares[j], "share_now": layer.shares[j] / weight if connected[j]
                                else 0.0, "connected": connected[j], "alive": self.alive[name],
                                "P_r_in": self.want[j], "v_ref_V": layer.v_ref[j],
-                               "Z_in": list(zin[j]) if zin[j] is not None else None}
+                               "Z_in": list(zin[j]) if zin[j] is not None else None,
+                               "not_connected": None if connected[j] else self._why_not_connected(name)}
                         for j, name in enumerate(self.names)},
             "verdicts": list(self.verdicts), "trips": list(self.trips), "resumed_v_ref": self.resumed,
             "counters": dict(self.counters), "last_reject": self.last_reject,
@@ -512,6 +513,19 @@ class Coordinator:
         }
 
     # ---------------------------------------------------------------- helpers
+    def _why_not_connected(self, name: str) -> str:
+        """Why a source's breaker is open, from what this coordinator saw last: a trip, a refused request, or none."""
+        trip = next((t for t in reversed(list(self.trips)) if t["source"] == name), None)
+        verdict = next((v for v in reversed(list(self.verdicts)) if v["source"] == name), None)
+        if verdict is not None and (trip is None or verdict["t"] >= trip["t"]) and not verdict.get("accepted"):
+            return f"its last connect request (t = {verdict['t']:.3f} s) was refused: {verdict.get('reason', '')}"
+        if trip is not None:
+            return (f"tripped at t = {trip['t']:.3f} s ({trip['reason']}); its daemon has not asked to connect since "
+                    "(it asks by itself once restarted, or with --connect-at)")
+        if self.alive.get(name) is not True:
+            return "no daemon holds its liveliness token"
+        return "open; its daemon has not asked to connect"
+
     def _reject(self, text: str) -> None:
         with self._lock:  # the loop thread and the query threads
             self.counters["rejected"] += 1

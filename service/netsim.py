@@ -88,11 +88,12 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
     ns = len(names)
     cfgs = list(net.sources.values())
     ctls, feas = [], []
-    for src in cfgs:
+    for name, src in zip(names, cfgs, strict=True):
         core = make_core(src.controller, src.model_params(), T, d, impl)
         ctls.append(SourceController(core, T, idle_power_W=lay.idle_power_W, idle_tau_s=lay.idle_tau_s,
                                      hold_when_open=lay.open_idle == "hold", resume_ramp_s=lay.resume_ramp_s,
-                                     fallback_idle_power_W=lay.fallback_idle_power_W))
+                                     fallback_idle_power_W=lay.fallback_idle_power_W,
+                                     fallback=net.fallback_of(name)))
         feas.append(FeasibilityMonitor(lay.window_s))
     config_events: dict[str, list] = {name: [] for name in names}  # the layer's v_ref moves: (t, seq, v_ref V)
     ranges: dict[str, list] = {name: [] for name in names}  # per source: (window, Z^{r,in}) as set
@@ -275,7 +276,8 @@ def network_metrics(res: NetworkResult, diverged_at: float | None, ctls, unsuppl
             "first_fallback_t_s": (float(t[np.argmax(row["mode"] == FALLBACK)])
                                    if "mode" in row and (row["mode"] == FALLBACK).any() else None),
             "final_mode": MODES[int(row["mode"][-1])] if n and "mode" in row else None,
-            "feasibility_violations": res.violations.get(s, 0),
+            # null where the run cannot know them: a live rig's trace (the daemons' monitors count them, in status)
+            "feasibility_violations": res.violations.get(s, 0) if ctls else None,
         }
     # steady state: the 100 ms before each event and before the end, where at least 50 ms passed since the last one
     marks = sorted({e.t for e in res.events} | {float(t[-1]) + T if n else 0.0})

@@ -32,7 +32,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="answer only the newest grid sample (a realtime rig); default: every sample in order "
                          "(lockstep)")
     co.add_argument("--out", metavar="FILE.mcap", help="its log: per sample what it saw and allocated, its windows, "
-                                                       "verdicts and trips (energyctl replay --coordinator replays it)")
+                                                       "verdicts and trips (energyctl replay FILE.mcap replays it)")
     co.add_argument("--no-trip-on-loss", action="store_true",
                     help="do not trip a source whose liveliness token disappears")
     add_core(co)

@@ -109,4 +109,8 @@ def run_network_rig(args: argparse.Namespace) -> int:
 
         print(f"energyctl plant: failed, sampling stopped: {res['failure']}", file=sys.stderr, flush=True)
         return EXIT_FAILED
+    if res["metrics"].get("diverged"):
+        print(f"energyctl plant: the network diverged: {res['metrics'].get('diverged_why') or ''}".rstrip(": "),
+              file=sys.stderr, flush=True)
+        return 1
     return 0

@@ -47,7 +47,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     net.add_argument("--log-dir", metavar="DIR", help="record to DIR/SOURCE-<UTC time>.mcap")
     net.add_argument("--connect-at", type=float, metavar="SECONDS",
                      help="ask to connect from this sample time on while its breaker is open (default: the time of "
-                          "its connect event in the scenario; none: it never asks); 0: as soon as it runs")
+                          "its connect event in the scenario; none: it asks only if the scenario has it connected "
+                          "from the start and its first allocation shows its breaker open, i.e. restarted after a "
+                          "trip); 0: whenever its breaker is open")
     net.add_argument("--coordinator", default="coordinator", help="the coordinator's id (default: %(default)s)")
     add_core(net)
     add_zenoh(net)

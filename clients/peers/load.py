@@ -3,6 +3,7 @@ forecast ranges of the windows it announces."""
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from queue import Empty
@@ -13,6 +14,16 @@ from schemas.component import LoadPeerConfig
 from service.core.feasibility import announced_window, load_box
 from service.daemon.bus import key, latest, open_session, publisher, queued
 from service.plant.profiles import Profile
+
+NO_MEAS_WARN_S = 5.0  # lockstep: no measurement this long after the start is said on stderr (once)
+
+
+def no_measurement(cfg) -> str:
+    """What a lockstep load that has had no measurement says (once), and the likeliest reason."""
+    return (f"energyctl load[{cfg.id}]: no measurement on {key(cfg.prefix, cfg.plant_id, 'meas')} in "
+            f"{NO_MEAS_WARN_S:g} s: the plant is not running, or it cannot reach this process (peers link to each "
+            "other directly, a daemon does not route between them: a peer that listens nowhere is reached only by "
+            "the peers it connects to; give every peer a listen endpoint, or connect them all to a router)")
 
 
 def _plant_clock(payload: bytes, last: tuple[int, float] | None) -> tuple[int, float] | None:
@@ -107,12 +118,16 @@ class LoadPeer:
             period = 1.0 / cfg.rate_hz
             nxt = time.monotonic()
             plant = None  # (seq, t) of the plant's sample followed last
+            told = False
             while not stop.is_set() and time.monotonic() - t_start < cfg.duration_s:
                 if lockstep:  # wait for the next sample
                     try:
                         m = meas_q.get(timeout=0.05)[1] if meas_q is not None else None
                     except Empty:
                         m = None
+                        if plant is None and not told and time.monotonic() - t_start > NO_MEAS_WARN_S:
+                            told = True
+                            print(no_measurement(cfg), file=sys.stderr, flush=True)
                     if m is None or (v := _plant_clock(m, plant)) is None:
                         continue
                     plant = v

@@ -8,13 +8,18 @@ takes each source's command from PREFIX/SOURCE/cmd and breaker commands from the
 (``{"target", "closed", "at_seq"}``: a source's lines or one line, from sample at_seq, or the next sample).
 
 * lockstep: sample k + 1 after every live source (its liveliness token up) answered sample k, or
-  ``lockstep_timeout_s`` passed (counted; that source is not waited for again until it catches up);
+  ``lockstep_timeout_s`` passed (counted; that source is not waited for again until it catches up). Its own
+  disconnection is not every source leaving: when the tokens of every peer it saw up are gone at once, or its
+  session has no router or peer left (its router restarting, its link down), it is cut off (counted in
+  ``cut_off``): it takes no sample and steps nothing until those tokens are back, then sends the sample they may
+  have missed again and goes on; cut off longer than ``wait_s`` it fails (exit 1). Realtime pacing runs on the wall
+  clock through such an outage (the sources' commands are then missing, as they are);
 * realtime: samples on the wall clock; the command answering sample k acts over period k + d (d the scenario's
   loop delay), else its predecessor's plan, else u is held.
 
 Should its sampling or its breaker thread end by an exception nobody expected, it stops sampling (the daemons see
 their measurements stop and hold), reports ``state: failed`` with the reason (service.daemon.failure), still writes
-its log, and ``energyctl plant`` exits 1.
+its log, and ``energyctl plant`` exits 1. A run that ends with the network diverged exits 1 as well.
 
 At the end it writes its log (``out``) in the layout of ``energyctl sim NETWORK --out`` for the plant: each source's,
 bus's and line's true state under PREFIX/NETWORK/ELEMENT/plant, the breaker events under PREFIX/NETWORK/layer/events,
@@ -43,6 +48,8 @@ from service.daemon.failure import Failure, guarded
 from service.netrig import NetworkRigModel
 from service.netsim import Event, NetworkResult, acceptance_checks, network_metrics
 
+CUT_WINDOW_S = 2.0  # sources whose tokens went this long before the rig found itself cut off went with the cut
+
 
 class NetworkRig:
     """One run of the network stand-in (see the module docstring): ``run()`` returns metrics and counters."""
@@ -58,12 +65,20 @@ class NetworkRig:
         self.lock = threading.Lock()
         self.events: list[Event] = []
         self.counters = {"samples": 0, "commands": 0, "timeouts": 0, "rejected": 0, "late": 0, "breaker_commands": 0,
-                         "missed": 0}
+                         "missed": 0, "cut_off": 0, "resent": 0}
         # realtime: per source, how many commands came 0, 1, ... samples after the one they answer (the last bin: older)
         self.age_hist = {name: [0] * (2 * self.model.d + 3) for name in self.names}
         self.alive: dict[str, bool | None] = dict.fromkeys(self.names)
         self.lagging: set[str] = set()
         self.answered = {name: -1 for name in self.names}
+        # every other process's token seen up (the sources', the coordinator's, ...), and when a source's went
+        self.peers_up: set[str] = set()
+        self._lost_at: dict[str, float] = {}  # monotonic s when each token went last
+        self._awaited: set[str] = set()  # cut off: the processes whose tokens went with the cut
+        self._resent_k = -1  # the last sample resent after a cut
+        self.cut_off_since: float | None = None  # monotonic s: its own session lost the others (module docstring)
+        self.cut_off_s = 0.0  # wall time spent cut off, all outages
+        self._frames: tuple = (b"", [])  # the last sample's grid and measurement frames (resent after a cut)
         self.diverged_at: float | None = None
         self.failure = Failure(f"energyctl plant[{cfg.id}]")
         self.cpu = None
@@ -105,6 +120,7 @@ class NetworkRig:
                 raise RuntimeError(f"{peer!r} not alive on the bus within {cfg.wait_s:g} s")
             if peer in self.alive:  # seen: waited for from sample 0 on (the token subscriber may tell later)
                 self.alive[peer] = True
+            self.peers_up.add(peer)
         for name, pub in zip(self.names, self.meas_pubs, strict=True):
             if (net.sources[name].connected or self._asks(name)) and not matched(pub, cfg.wait_s, self.stop):
                 raise RuntimeError(f"no subscriber for {key(p, name, 'meas')} within {cfg.wait_s:g} s")
@@ -151,10 +167,16 @@ class NetworkRig:
                 for q, pub in enumerate(self.load_pubs):
                     P = plant.load_power(q, t)
                     pub.put(Z.encode(k, t, P, 0.0, 0.0, 0.0, 0.0, 0, P, P, 0.0, 0.0))
-            self.grid_pub.put(GRID.encode(k, t, [s.v for s in samples], [s.i_load for s in samples], connected,
-                                          model.bus_measurements(), model.load_powers()))
-            for pub, s in zip(self.meas_pubs, samples, strict=True):
-                pub.put(MEAS.encode(k, t, s.i, s.v, s.u, s.i_load))
+            grid = GRID.encode(k, t, [s.v for s in samples], [s.i_load for s in samples], connected,
+                               model.bus_measurements(), model.load_powers())
+            meas = [MEAS.encode(k, t, s.i, s.v, s.u, s.i_load) for s in samples]
+            if self.lockstep:
+                if self.cut_off_since is not None:  # cut off before this sample went out: back first
+                    self._ride_out_cut(k, resend=False)
+                self._frames = (grid, meas)
+            self.grid_pub.put(grid)
+            for pub, m in zip(self.meas_pubs, meas, strict=True):
+                pub.put(m)
             self.counters["samples"] += 1
             if self.lockstep:
                 answers = self._await(k)
@@ -188,10 +210,79 @@ class NetworkRig:
 
     # ---------------------------------------------------------------- commands
     def _poll_alive(self) -> None:
+        gone = False
         while (tok := self.alive_sub.try_recv()) is not None:
             parts = str(tok.key_expr).split("/")
-            if len(parts) >= 2 and parts[-2] in self.alive:
-                self.alive[parts[-2]] = tok.kind == zenoh.SampleKind.PUT
+            if len(parts) < 2 or parts[-2] == self.cfg.id:
+                continue
+            name, up = parts[-2], tok.kind == zenoh.SampleKind.PUT
+            if up:
+                self.peers_up.add(name)
+            else:
+                gone = gone or name in self.peers_up
+                self.peers_up.discard(name)
+                self._lost_at[name] = time.monotonic()
+                if self.cut_off_since is not None:
+                    self._awaited.add(name)
+            if name in self.alive:  # while cut off, a source's token going says nothing: unknown, waited for
+                self.alive[name] = True if up else (None if self.cut_off_since is not None else False)
+        if gone and self.lockstep and self.cut_off_since is None and (not self.peers_up or self._no_links()):
+            self._cut_off()
+
+    def _no_links(self) -> bool:
+        """Its session has no router and no peer left (asked only when a token went: rare)."""
+        try:
+            info = self.session.info
+            return not info.routers_zid() and not info.peers_zid()
+        except Exception:  # noqa: BLE001 - a closing session: as good as none
+            return True
+
+    def _cut_off(self) -> None:
+        """Every peer's token went at once, or its session lost every link: it is cut off, not they gone. The
+        processes whose tokens went with it (within CUT_WINDOW_S) are waited for; its sources among them become
+        unknown (None), not gone."""
+        now = time.monotonic()
+        self.cut_off_since = now
+        self.counters["cut_off"] += 1
+        self._awaited = {n for n, at in self._lost_at.items() if now - at <= CUT_WINDOW_S}
+        for name in self._awaited & set(self.alive):
+            self.alive[name] = None
+        print(f"energyctl plant: cut off from the other processes at sample {self.counters['samples']} (every "
+              f"token gone at once, or no link left): waiting up to {self.cfg.wait_s:g} s for "
+              f"{', '.join(sorted(self._awaited))}", file=self.log, flush=True)
+
+    def _ride_out_cut(self, k: int, resend: bool) -> None:
+        """Lockstep, cut off: wait until every process whose token went with the cut is back; then, with ``resend``,
+        send sample k's frames again (they may have gone nowhere). Cut off longer than wait_s: it fails."""
+        t0 = self.cut_off_since
+        deadline = t0 + self.cfg.wait_s
+        while True:
+            self._poll_alive()
+            waiting = self._awaited - self.peers_up
+            if not waiting and not self._no_links():
+                break
+            if self.stop.is_set() or self.failure:
+                return
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"cut off from the bus for {self.cfg.wait_s:g} s at sample {k}: "
+                                   f"{', '.join(sorted(waiting)) or 'no link'} not back")
+            time.sleep(0.01)
+        # the tokens can be back before the subscriptions are routed again: a frame put before then goes nowhere
+        for name, pub in zip(self.names, self.meas_pubs, strict=True):
+            if name in self._awaited and not matched(pub, max(0.0, deadline - time.monotonic()), self.stop):
+                raise RuntimeError(f"cut off: {name}'s token is back but nothing subscribes to its measurements")
+        self.cut_off_s += time.monotonic() - t0
+        self.cut_off_since = None
+        print(f"energyctl plant: back on the bus after {time.monotonic() - t0:.2f} s, at sample {k}", file=self.log,
+              flush=True)
+        if resend:
+            grid, meas = self._frames
+            self.grid_pub.put(grid)
+            for name, pub, m in zip(self.names, self.meas_pubs, meas, strict=True):
+                if self.answered[name] < k:
+                    pub.put(m)
+            self.counters["resent"] += 1
+            self._resent_k = k
 
     def _decode(self, name: str, payload: bytes) -> tuple | None:
         try:
@@ -212,8 +303,16 @@ class NetworkRig:
             _, q = self.cmd[name]
             got = None
             while True:
+                if self.stop.is_set() or self.failure:
+                    break
+                if self.cut_off_since is not None:  # its own outage, not theirs: wait it out, resend, wait anew
+                    self._ride_out_cut(k, resend=True)
+                    deadline = time.monotonic() + self.cfg.lockstep_timeout_s
+                    continue
                 if self.alive[name] is not True and q.empty():
                     self._poll_alive()
+                    if self.cut_off_since is not None:
+                        continue
                     if self.alive[name] is not True:
                         break  # not running (or gone): nothing to wait for
                 if name in self.lagging and q.empty():
@@ -221,11 +320,14 @@ class NetworkRig:
                 try:
                     _, payload = q.get(timeout=max(1e-4, min(0.05, deadline - time.monotonic())))
                 except Empty:
+                    self._poll_alive()
+                    if self.cut_off_since is not None:
+                        continue
                     if time.monotonic() >= deadline:
                         self.counters["timeouts"] += 1
-                        self.lagging.add(name)
+                        if k != self._resent_k:  # a resent sample it had answered into the cut: no answer comes,
+                            self.lagging.add(name)  # and it is not behind (a lagging source is not waited for)
                         break
-                    self._poll_alive()
                     continue
                 c = self._decode(name, payload)
                 if c is None:
@@ -339,7 +441,7 @@ class NetworkRig:
                "wall_s": getattr(self, "wall_s", None),
                "rate_achieved_hz": n / self.wall_s if getattr(self, "wall_s", 0) else None,
                "cpu": {"rig_pct": self.cpu.pct if self.cpu else None}, "checks": checks,
-               "last_answered": dict(self.answered)}
+               "last_answered": dict(self.answered), "cut_off_s": round(self.cut_off_s, 3)}
         if self.cfg.out:
             write_rig_log(self.cfg.out, res, self.cfg.prefix, out)
         out["result"] = res

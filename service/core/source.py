@@ -11,9 +11,14 @@ of the design notes come around it, and this wrapper answers them without touchi
   above ``idle_exit`` x that power. The core is told what was applied (``core.hold(seq, du_dt)``), so its delay
   prediction stays right across the switch.
 * **stale interaction variables** — when the neighbours' messages are older than the caller's bound
-  (``fresh`` False), P^{r,in} falls back to the source's own terminal power, -v i_out from its own sample: the
-  own-terminal law, which needs no communication; in fallback it idles below ``fallback_idle_power_W`` (default:
-  the idle power), as a source left near zero current there rings up the mapping's fast mode. Fresh again, it
+  (``fresh`` False), P^{r,in} falls back: with ``fallback = "last-allocation"`` to the last fresh P^{r,in} it used,
+  carried along the change of its own terminal power since (P_own + P^{r,in}_last - P_own at the first stale step):
+  its share is kept and a load change is taken up at its terminal, as the own-terminal law does; with
+  ``"own-terminal"`` to the source's own terminal power, -v i_out from its own sample alone (the sources then split
+  by their lines and v_refs: a source plugged in just before kept 228 of its 600 W, docs/decisions/0032). Following
+  its own terminal it idles below ``fallback_idle_power_W`` (default: the idle power), as a source left near zero
+  current there rings up the paper law's mapping's fast mode; keeping its share it keeps ``idle_power_W``. Fresh
+  again, it
   moves from that power to P^{r,in} linearly over ``resume_ramp_s`` (P = P_own + (P^{r,in} - P_own) n / N, n the
   steps since, N = resume_ramp_s / T): the sources' powers then come back to their shares together, not in a step.
 * **light load** is the core's i_floor (``controller.limits.i_floor_A``): the notes measured a 2 A floor
@@ -37,8 +42,15 @@ class SourceController:
 
     def __init__(self, core, period_s: float, idle_power_W: float = 30.0, idle_exit: float = 1.5,
                  droop_ohm: float = 0.4, idle_tau_s: float = 5e-3, hold_when_open: bool = False,
-                 resume_ramp_s: float = 0.0, fallback_idle_power_W: float | None = None):
+                 resume_ramp_s: float = 0.0, fallback_idle_power_W: float | None = None,
+                 fallback: str = "own-terminal"):
         self.core = core
+        if fallback not in ("own-terminal", "last-allocation"):
+            raise ValueError(f"fallback: {fallback!r} is not 'own-terminal' or 'last-allocation'")
+        self.fallback = fallback
+        self._P_last = None  # the last fresh P^{r,in} it used (W): what "last-allocation" keeps
+        self._was_fresh = True
+        self._P_gap = 0.0  # last-allocation: that P^{r,in} minus its own terminal's power when it went stale
         # disconnected: hold u (du/dt = 0) instead of the droop law; at a low rate with milliseconds of loop delay
         # the droop law cannot damp the open terminal's L-C resonance and rang it up (1 kHz, 2-4 ms: diverged)
         self.hold_when_open = hold_when_open
@@ -74,7 +86,13 @@ class SourceController:
         incoming interaction variable P^{r,in} (W, negative when delivering) and its rate, as last received;
         connected: its breaker is closed; fresh: that P^{r,in} is recent enough to use."""
         if not fresh:
-            P_in_W, P_in_dot_W_per_s = -s.v * s.i_load, 0.0  # its own terminal power
+            if self.fallback == "last-allocation" and self._P_last is not None:
+                P_own = -s.v * s.i_load
+                if self._was_fresh:  # its first stale step: what it was asked for against what it delivered
+                    self._P_gap = self._P_last - P_own
+                P_in_W, P_in_dot_W_per_s = P_own + self._P_gap, 0.0  # its last share kept, the changes followed
+            else:
+                P_in_W, P_in_dot_W_per_s = -s.v * s.i_load, 0.0  # its own terminal power
             self._since_fallback = 0
         elif self._since_fallback < self.resume_steps:  # back from a fallback: from its own power to P^{r,in}
             self._since_fallback += 1
@@ -82,8 +100,13 @@ class SourceController:
             P_own = -s.v * s.i_load
             P_in_W, P_in_dot_W_per_s = P_own + a * (P_in_W - P_own), a * P_in_dot_W_per_s
         self.P_in_used = P_in_W
+        self._was_fresh = fresh
+        if fresh:
+            self._P_last = P_in_W
         power = abs(P_in_W)
-        floor = self.idle_power_W if fresh else self.fallback_idle_power_W
+        # the fallback floor is the own-terminal law's (near zero current the paper law's mapping rang up): a source
+        # keeping its last share keeps the ordinary one (decision 0032)
+        floor = self.idle_power_W if fresh or self.fallback == "last-allocation" else self.fallback_idle_power_W
         if not connected:
             idle = True
         elif self.idle:

@@ -78,6 +78,7 @@ class Daemon(DaemonQueries):
         self.control_ns = 0  # the last tick's control computation (ns; LoopStats.control)
         self._idle = 0
         self.restarts = 0
+        self.meas_skipped = 0  # frames the sample loop passed over for newer ones (catch_up), unchecked but counted
         self.late_ticks = 0  # ticks at which the core saw its commands not acting in time (late_detect_V)
         self.current_limited_ticks = 0  # ticks whose command the law shaped at limits.i_max_A (nested)
         self._ilim_out = None  # the core's output to read i_limited from, while a current limit is set
@@ -391,6 +392,7 @@ class Daemon(DaemonQueries):
                     continue
                 while q.qsize() >= catch_up:  # keep the newest catch_up; this one first, the rest next round
                     item = q.get_nowait()
+                    self.meas_skipped += 1  # the one passed over: counted (missing_samples counts seqs, not frames)
                 payload = item[1]
             start = t_exec = now_ns()
             if lockstep and self.neighbours:

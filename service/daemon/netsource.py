@@ -10,7 +10,9 @@ What differs from a single component's daemon (service.daemon.daemon):
   older than ``network.stale_s`` of sample time — a coordinator gone or cut off leaves it on its last v_ref, falling
   back as the offline design does;
 * the line ends at its terminal (PREFIX/LINE/z/ID) are its neighbours: shown in status and logged, not followed;
-* the plug-in handshake: from ``network.connect_at_s`` on, while its breaker is open, it asks the coordinator
+* the plug-in handshake: from ``network.connect_at_s`` on (unset: from its first allocation, if that shows its
+  breaker open although the scenario has it connected from the start: a daemon restarted after its source was
+  tripped), while its breaker is open, it asks the coordinator
   (PREFIX/COORDINATOR/connect) for its offer (its share of the window's load box), forecasts its own Z^{r,out} for
   that and announces it; the coordinator checks it against the offer's Z^{r,in} and only then has the rig close
   its breaker. In lockstep the request is made
@@ -41,6 +43,8 @@ from service.daemon.forecast_worker import start_background_pool
 from service.daemon.neighbours import Neighbour
 from service.forecast import forecast_outgoing
 
+FALLBACK_REFERENCE = {"last-allocation": "last allocation (fallback)", "own-terminal": "own terminal (fallback)"}
+
 
 class NetworkSourceDaemon(Daemon):
     """See the module docstring."""
@@ -53,7 +57,8 @@ class NetworkSourceDaemon(Daemon):
         self.ctl = SourceController(self.core, self.period_s, idle_power_W=self.role.idle_power_W,
                                     idle_tau_s=self.role.idle_tau_s,
                                     hold_when_open=self.role.open_idle == "hold", resume_ramp_s=self.role.resume_ramp_s,
-                                    fallback_idle_power_W=self.role.fallback_idle_power_W)
+                                    fallback_idle_power_W=self.role.fallback_idle_power_W,
+                                    fallback=self.role.fallback)
         self.alloc = Neighbour(self.role.coordinator, None)
         self.alloc_vals: tuple | None = None  # the newest allocation's values (schemas.codec.ALLOC order)
         self.lines: list[Neighbour] = []
@@ -64,6 +69,8 @@ class NetworkSourceDaemon(Daemon):
         self._seen_restarts = 0
         k_connect = None if self.role.connect_at_s is None else round(self.role.connect_at_s / self.period_s)
         self._connect_seq = k_connect  # the sample from which the breaker is to close
+        self._auto_connect = False  # restarted after a trip: asks from its first allocation on (module docstring)
+        self._first_alloc = True
         self._next_request_t = -1.0  # sample time of the next connect request allowed
         self.handshake: dict = {"requests": 0, "last": None}
         self._asking = threading.Event()  # realtime: a request is under way in its thread
@@ -147,6 +154,9 @@ class NetworkSourceDaemon(Daemon):
         self._next_request_t = -1.0
         self._range = None
         self._seen_restarts = self.restarts
+        self._first_alloc = True
+        if self._auto_connect:  # a new run: its start decides again
+            self._connect_seq, self._auto_connect = None, False
 
     # ---------------------------------------------------------------- the tick
     def _step(self, v: tuple, now: int) -> None:
@@ -167,6 +177,10 @@ class NetworkSourceDaemon(Daemon):
                 if rec is not None:
                     rec.offer(self.t_ev, t_prev, (t_prev, seq, "config", json.dumps({"v_ref_V": new.v_ref_V})))
             self.connected = bool(av[5])
+            if self._first_alloc:
+                self._first_alloc = False
+                if not self.connected and self._connect_seq is None and self.role.connected_at_start:
+                    self._connect_seq, self._auto_connect = seq, True  # restarted after a trip: back by itself
             if av[7] and (av[6], av[8:12]) != self._range:  # a new window's range, or this one's after an event
                 self._range = (av[6], av[8:12])
                 self.feas.set_range(av[6], av[8:12])
@@ -187,7 +201,7 @@ class NetworkSourceDaemon(Daemon):
             du = du_next = 0.0
             stepped = False
             self.core.hold(seq)
-        self.reference = "allocation" if fresh else "own terminal (fallback)"
+        self.reference = "allocation" if fresh else FALLBACK_REFERENCE[role.fallback]
         if self._connect_seq is not None and not connected:
             self._maybe_connect(seq, t)
         cmd = CMD.encode(seq, t, du, du_next, limited)
@@ -295,5 +309,24 @@ class NetworkSourceDaemon(Daemon):
             "fallback_ticks": self.fallback_ticks, "mode_switches": self.ctl.switches,
             "lines": {nb.id: {"P_r_out": nb.P, "messages": nb.count} for nb in self.lines},
             "handshake": dict(self.handshake),
+            "not_connected": self._why_not_connected(),
         }
         return out
+
+    def _why_not_connected(self) -> str | None:
+        """Why its breaker is not closed, for the operator (None: it is, or no allocation said yet)."""
+        if self.connected is not False:
+            return None
+        if self._connect_seq is None:
+            return ("breaker open; this daemon does not ask to connect (no --connect-at, no connect event for it in "
+                    "the scenario, and it did not start connected): start it with --connect-at 0")
+        period = self.period_s
+        last = self.handshake["last"]
+        if last is not None and not last["accepted"]:
+            return (f"breaker open; its last connect request (t = {last['t']:.3f} s) was refused: {last['reason']}; "
+                    f"it asks again from t = {self._next_request_t:.3f} s")
+        since = self._connect_seq * period
+        how = "restarted after a trip: it asks by itself" if self._auto_connect else "connect_at"
+        if self.handshake["requests"] == 0:
+            return f"breaker open; asking to connect from t = {since:.3f} s ({how})"
+        return f"breaker open; asking to connect ({how}; {self.handshake['requests']} requests so far)"

@@ -75,7 +75,9 @@ class DaemonQueries:
             "loop": {"rate_hz": c.loop.rate_hz, "trigger": c.loop.trigger,
                      **self.stats.summary(now, fresh=self.state == "shutdown"),
                      # samples the full queue dropped (oldest first) while the loop thread was held up
-                     "meas_queue_dropped": getattr(getattr(self, "meas_q", None), "dropped", 0)},
+                     "meas_queue_dropped": getattr(getattr(self, "meas_q", None), "dropped", 0),
+                     # frames the loop passed over to answer the newest loop.catch_up (after a wait or a stall)
+                     "meas_skipped": self.meas_skipped},
             "last_sample": dict(zip(MEAS.fields, ls, strict=True)) if ls else None,
             "last_command": dict(zip(CMD.fields, self.last_cmd, strict=True)) if self.last_cmd else None,
             "estimate": {k: getattr(est, k) for k in ("E", "E_t", "p", "y_z", "y_z_balance", "eta", "P_r_out_port",

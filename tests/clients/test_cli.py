@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import DATA, SCENARIOS
+from conftest import DATA, ROOT, SCENARIOS
 from mcap.reader import make_reader
 
 from clients.cli import main
@@ -620,3 +620,17 @@ def test_report_draws_a_network_log(tmp_path, capsys):
     assert figs <= {p.name for p in (tmp_path / "rep").iterdir()}
     summary = (tmp_path / "rep" / "summary.md").read_text()
     assert "trip S2" in summary and "S1" in summary
+
+
+def test_the_coordinator_help_names_only_commands_that_exist():
+    """coordinator --help sent its log to 'energyctl replay --coordinator', an option replay does not have (rc 2):
+    a coordinator's log is replayed by 'energyctl replay FILE.mcap'."""
+    import subprocess
+    import sys
+
+    h = subprocess.run([sys.executable, "-m", "clients.cli", "coordinator", "--help"], capture_output=True, text=True,
+                       cwd=ROOT)
+    assert h.returncode == 0 and "replay --coordinator" not in h.stdout and "energyctl replay" in h.stdout, h.stdout
+    r = subprocess.run([sys.executable, "-m", "clients.cli", "replay", "--help"], capture_output=True, text=True,
+                       cwd=ROOT)
+    assert "--coordinator" not in r.stdout

@@ -121,3 +121,73 @@ def test_the_examples_regulate_and_query_the_daemon(tmp_path):
             plant.kill()
             plant.wait(5.0)
         stop(daemon)
+
+
+def test_the_example_plant_reaches_a_load_that_is_a_process_of_its_own(tmp_path):
+    """Three processes: the daemon, the example plant (--neighbour '') and `energyctl load` as the neighbour, the load a
+    peer that listens nowhere, as the example plant was. The daemon does not route between its peers, so the load
+    and the plant must link directly: with both listening nowhere the load saw no measurement while the daemon
+    reported it alive. The example plant now listens on a free loopback port, and the load reaches it."""
+    import os
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    here = [sys.executable, "-m", "clients.cli"]
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    zcfg = tmp_path / "load-zenoh.json5"
+    zcfg.write_text(json.dumps({"mode": "peer", "listen": {"endpoints": []}, "connect": {"endpoints": [endpoint]},
+                                "scouting": {"multicast": {"enabled": False}}}))
+    procs = []
+
+    def start(name, argv):
+        with open(tmp_path / f"{name}.out", "w") as so, open(tmp_path / f"{name}.err", "w") as se:
+            procs.append(subprocess.Popen(argv, stdout=so, stderr=se, cwd=ROOT, env=env))
+        return procs[-1]
+
+    def log(name) -> str:
+        return (tmp_path / f"{name}.err").read_text(errors="replace")[-2000:]
+
+    try:
+        daemon = start("daemon", [*here, "run", "--config", str(EXAMPLES / "component.toml"),
+                                  "--set", f'zenoh.listen=["{endpoint}"]'])
+        assert wait_until(lambda: listening(port) or daemon.poll() is not None, 15.0), log("daemon")
+        assert daemon.poll() is None, log("daemon")
+        load = start("load", [*here, "load", "--config", str(ROOT / "scenarios" / "live" / "load.toml"),
+                              "--set", f"zenoh.config_file={json.dumps(str(zcfg))}",
+                              "--set", f'zenoh.connect=["{endpoint}"]', "--set", "duration_s=120",
+                              "--set", "load.components=[]"])
+        st = lambda: client(endpoint, "status")  # noqa: E731
+        assert wait_until(lambda: '"load"' in st().stdout and json.loads(st().stdout)["neighbours"]["load"]["alive"],
+                          20.0), log("load")
+        plant = subprocess.run([sys.executable, str(EXAMPLES / "lockstep_plant.py"), "--connect", endpoint, "--id",
+                                "source", "--neighbour", "", "--seconds", "0.2"], capture_output=True, text=True,
+                               timeout=120, env=env)
+        res = json.loads(plant.stdout.strip().splitlines()[-1])  # (exit 1 on any timeout: the first, see below)
+        assert res["samples"] == 2000 and res["timeouts"] <= 1, (res, plant.stderr[-2000:])
+        status = json.loads(client(endpoint, "status").stdout)
+        # every sample's z came from the load process (the first may come before the plant and the load linked)
+        assert status["neighbours"]["load"]["messages"] >= res["samples"] - 1, (status["neighbours"], log("load"))
+        assert status["loop"]["lockstep_timeouts"] <= 1, status["loop"]
+        assert load.poll() is None, log("load")
+    finally:
+        for p in procs:
+            stop(p)
+
+
+def test_a_lockstep_load_that_gets_no_measurement_says_so(tmp_path):
+    """The load waited silently for measurements that could not reach it; now it says so once, with the likely
+    reason."""
+    import os
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with open(tmp_path / "load.err", "w") as se:
+        load = subprocess.Popen([sys.executable, "-m", "clients.cli", "load", "--config",
+                                 str(ROOT / "scenarios" / "live" / "load.toml"), "--set",
+                                 f'zenoh.connect=["tcp/127.0.0.1:{free_port()}"]', "--set", "duration_s=60"],
+                                stdout=subprocess.DEVNULL, stderr=se, cwd=ROOT, env=env)
+    try:
+        said = lambda: "no measurement on energyctl/source/meas" in (tmp_path / "load.err").read_text()  # noqa: E731
+        assert wait_until(said, 30.0), (tmp_path / "load.err").read_text()
+        assert "listens nowhere" in (tmp_path / "load.err").read_text()
+    finally:
+        stop(load)

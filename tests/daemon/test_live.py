@@ -218,6 +218,34 @@ def test_a_lockstep_loop_waits_for_its_neighbours_only_on_a_sample_it_steps_on()
         d.close()
 
 
+def test_frames_the_lockstep_loop_passes_over_are_counted():
+    """With loop.catch_up = 1 the loop answers the newest queued frame; the ones it passed over (queued while it
+    waited or stalled) were dropped without a count. Now each is counted in status loop.meas_skipped (frames that can
+    never be the next sample are refused before they are queued, and counted there), and none stalls the loop."""
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=True, rate_hz=10000.0)
+    comp["loop"].update(catch_up=1, lockstep_timeout_s=1.0)
+    comp["forecast"] = {"enabled": False}
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    try:
+        nb = d.neighbours[0]
+        nb.seq, nb.count, nb.P, nb.rx_ns, nb.alive = 4, 1, 1200.0, time.monotonic_ns(), True  # its z up to sample 4
+        got, sub, pub = plant_side(d)
+        frames = [MEAS.encode(k, k * 1e-4, 15.0, 80.0, 80.15, 15.0) for k in range(1, 5)]
+        for payload in frames:
+            pub.put(payload)
+        assert wait_until(lambda: d.meas_q.qsize() == len(frames), 5.0)
+        d.run_loop(max_ticks=1)
+        assert wait_until(lambda: got == [4], 5.0), got
+        st = d.status()
+        assert st["loop"]["meas_skipped"] == len(frames) - 1, st["loop"]
+        assert d.stats.lockstep_timeouts == 0 and not nb.lagging
+        sub.undeclare()
+    finally:
+        d.close()
+
+
 @pytest.mark.parametrize(("catch_up", "answered"), [(1, [5]), (3, [3, 4, 5])])
 def test_a_sample_triggered_loop_answers_the_newest_queued_samples_in_order(catch_up, answered):
     """loop.catch_up: of six queued samples, the newest catch_up are answered, oldest first; 1 = only the newest."""

@@ -95,3 +95,54 @@ def test_a_breaker_thread_that_fails_ends_the_rigs_sampling_and_its_result_says_
     assert not t.is_alive() and rig.failure
     res = rig.result()
     assert res["state"] == "failed" and res["failure"].startswith("breaker: RuntimeError: zenoh went away")
+
+
+class Tokens:
+    """Liveliness events, as the rig's token subscriber hands them over."""
+
+    def __init__(self):
+        self.items = []
+
+    def put(self, name: str, up: bool) -> None:
+        import zenoh
+
+        kind = zenoh.SampleKind.PUT if up else zenoh.SampleKind.DELETE
+        self.items.append(type("Tok", (), {"key_expr": f"energyctl/{name}/alive", "kind": kind})())
+
+    def try_recv(self):
+        return self.items.pop(0) if self.items else None
+
+
+class Linked:
+    """A session whose info says it still has a router (links) or has none."""
+
+    def __init__(self, routers: list):
+        self.info = type("Info", (), {"routers_zid": lambda _: routers, "peers_zid": lambda _: []})()
+
+
+def test_the_rig_takes_every_token_gone_at_once_for_its_own_outage_not_every_source_leaving():
+    """Its router restarted, the lockstep rig saw every source's token go at once and stopped waiting for them: it
+    stepped thousands of samples with no commands. Now every peer's token gone (or its session without a link) is
+    its own outage: those sources are unknown (None), waited for, not gone; one source going alone is that source."""
+    rig = NetworkRig(NetworkRigConfig(), load_network(NET), threading.Event())
+    rig.alive_sub, rig.session = Tokens(), Linked(["router"])
+    rig.peers_up = {"S1", "S2", "coordinator"}
+    rig.alive.update(S1=True, S2=True)
+    rig.alive_sub.put("S2", False)  # S2 alone: gone
+    rig._poll_alive()
+    assert rig.cut_off_since is None and rig.alive["S2"] is False and rig.counters["cut_off"] == 0
+    rig.alive_sub.put("S2", True)
+    rig._poll_alive()
+    for name in ("S1", "S2", "coordinator"):  # every token at once: its own outage
+        rig.alive_sub.put(name, False)
+    rig._poll_alive()
+    assert rig.cut_off_since is not None and rig.counters["cut_off"] == 1
+    assert rig.alive["S1"] is None and rig.alive["S2"] is None and rig._awaited == {"S1", "S2", "coordinator"}
+    # a session with no router left is cut off too, whoever's token went first
+    rig = NetworkRig(NetworkRigConfig(), load_network(NET), threading.Event())
+    rig.alive_sub, rig.session = Tokens(), Linked([])
+    rig.peers_up = {"S1", "S2", "coordinator"}
+    rig.alive.update(S1=True, S2=True)
+    rig.alive_sub.put("S1", False)
+    rig._poll_alive()
+    assert rig.cut_off_since is not None and rig.alive["S1"] is None and rig.alive["S2"] is True

@@ -132,6 +132,30 @@ def test_a_daemon_killed_is_tripped_and_its_share_taken_over(tmp_path, trip_scen
     assert abs(float(np.mean(rig.sources["S2"]["P"][late]))) < 0.05 * float(np.mean(rig.sources["S1"]["P"][late]))
 
 
+def test_a_restarted_source_asks_to_connect_by_itself_and_status_says_why(tmp_path, trip_scenario):
+    """A source's daemon killed (tripped) and started again as docs/network.md shows, without --connect-at: it idled
+    with its breaker open and nothing said so. Now the coordinator's status says why S2 is not connected, and the
+    restarted daemon, whose first allocation shows its breaker open although the scenario has it connected from the
+    start, asks to connect by itself and comes back through the handshake."""
+    with LiveNetwork(trip_scenario, tmp_path / "run", sets=["timing.duration_s=3.0"]) as live:
+        live.start()
+        with live.session() as z:
+            live.wait_until(z, "coordinator", lambda st: st["t"] >= 0.1, 60)
+            live.kill("S2", signal.SIGKILL)
+            st = live.wait_until(z, "coordinator", lambda st: not st["sources"]["S2"]["connected"], 30)
+            assert "tripped" in st["sources"]["S2"]["not_connected"], st["sources"]["S2"]
+            assert st["sources"]["S1"]["not_connected"] is None
+            t_restart = st["t"]
+            live.start_source("S2")  # no --connect-at
+            st = live.wait_until(z, "coordinator", lambda st: st["sources"]["S2"]["connected"], 60)
+            assert any(v["source"] == "S2" and v["accepted"] and v["t"] >= t_restart for v in st["verdicts"]), st
+            s2 = live.wait_until(z, "S2", lambda st: st["network"]["breaker"] == "closed", 30)
+            assert s2["network"]["handshake"]["requests"] >= 1 and s2["network"]["not_connected"] is None
+        res = live.wait_rig(120)
+    assert not res["metrics"]["diverged"]
+    assert [e["target"] for e in res["metrics"]["events"] if e["kind"] == "connect"] == ["S2"], res["metrics"]["events"]
+
+
 def test_the_sources_fall_back_without_the_coordinator_and_it_resumes(tmp_path, trip_scenario):
     with LiveNetwork(trip_scenario, tmp_path / "run") as live:
         live.start()
@@ -141,7 +165,7 @@ def test_the_sources_fall_back_without_the_coordinator_and_it_resumes(tmp_path, 
             # the sources: their allocation goes stale within 10 ms of sample time, and they follow their terminals
             for s in ("S1", "S2"):
                 st = live.wait_until(z, s, lambda st: st["network"]["allocation"]["stale"], 30)
-                assert st["reference"] == "own terminal (fallback)"
+                assert st["reference"] == "last allocation (fallback)"
             v_refs = {s: live.query(z, s)["network"]["v_ref_V"] for s in ("S1", "S2")}
             live.start_coordinator()
             co = live.wait_until(z, "coordinator", lambda st: st["seq"] > 0, 30)

@@ -374,3 +374,41 @@ def test_a_bus_no_source_reaches_is_a_blackout_not_a_divergence():
     for s in ("S1", "S2"):
         assert 0.5 * 80.0 < res.sources[s]["v"][-1] < 2.0 * 80.0
     assert _run("two-source-trip", "timing.duration_s=0.6").metrics["unsupplied_s"] == {}  # one trip: still fed
+
+
+def test_a_trace_without_the_controllers_reports_feasibility_violations_as_unknown():
+    """A live rig's trace (no controllers: the daemons' monitors count excursions) reported 0 feasibility violations
+    per source, a count it cannot know; now null (the offline run, which has them, still counts)."""
+    from service.netsim import network_metrics
+
+    net = load_network(SCENARIOS / "network" / "two-source.toml", ["timing.duration_s=0.05", "events=[]"])
+    res = run_network(net)
+    assert all(isinstance(m["feasibility_violations"], int) for m in res.metrics["sources"].values())
+    live = network_metrics(res, None, None)
+    assert all(m["feasibility_violations"] is None for m in live["sources"].values()), live["sources"]
+
+
+def test_without_the_coordinator_the_sources_keep_their_last_shares():
+    """The layer's messages silent from just after S3's plug-in (2:1:1 of 2.4 kW: 1200, 600, 600 W). Following their
+    own terminals alone, the sources split by their lines and v_refs, and S3, whose v_ref the layer had not moved
+    yet, kept 228 of its 600 W (across hosts S2 fell so below 300 W, idled, and 2:1 became 90:10). Keeping the last
+    allocation (the default), each keeps its share, the bus within +-2 %."""
+    silent = ["links.*.silent_from_s=4.06", "timing.duration_s=6"]
+
+    def powers(*extra):
+        r = _run("realtime", *silent, *extra)
+        late = r.t >= 5.0
+        return {s: float(r.sources[s]["P"][late].mean()) for s in ("S1", "S2", "S3")}, r
+
+    kept, r = powers()
+    total = sum(kept.values())
+    for s, share in (("S1", 0.5), ("S2", 0.25), ("S3", 0.25)):
+        assert kept[s] / total == pytest.approx(share, abs=0.03), kept
+    assert all(m["final_mode"] == "fallback" for m in r.metrics["sources"].values()), r.metrics["sources"]
+    assert np.abs(r.buses["bus"][r.t >= 4.2] - 80.0).max() < 0.02 * 80.0
+    own, _ = powers('layer.fallback="own-terminal"')
+    assert own["S3"] / sum(own.values()) < 0.15, own  # what the own-terminal fallback did
+    # silent 20 ms into S3's plug-in ramp: it keeps about where the ramp was, below the 300 W fallback floor of the
+    # own-terminal law, and does not idle (that floor is the paper law's hazard, not the kept share's)
+    r = _run("realtime", "links.*.silent_from_s=4.02", "timing.duration_s=5")
+    assert r.metrics["sources"]["S3"]["final_mode"] == "fallback", r.metrics["sources"]["S3"]
