@@ -294,8 +294,8 @@ def run_live(scn: Scenario, lockstep: bool, rate_hz: float | None, out: str | No
     with Processes() as procs:
         if secure:
             procs.start("router", ["router", "--config", str(creds["router"])], env=env)
-            if not wait_until(lambda: port_open(ep), 15.0):
-                raise RuntimeError(f"the router did not listen on {ep} within 15 s")
+            if not wait_until(lambda: port_open(ep), COME_UP_S):
+                raise RuntimeError(f"the router did not listen on {ep} within {COME_UP_S:g} s")
         procs.start("daemon", ["run", "--config", str(paths["component"]), "--stats-out", str(stats_path)], env=env)
         procs.start("load", ["load", "--config", str(paths["load"])], env=env)
         extra_res = extra(ep, procs, env) if extra is not None else None
@@ -340,6 +340,11 @@ def port_open(endpoint: str) -> bool:
             return True
     except OSError:
         return False
+
+
+# how long a process started here may take to come up (interpreter, imports, its Zenoh session, its token): on a
+# machine busy with other work (CI beside a CPU-heavy job) 20 s was seen to pass; one that is up sooner costs nothing
+COME_UP_S = 60.0
 
 
 def wait_until(pred, timeout_s: float, every_s: float = 0.02) -> bool:

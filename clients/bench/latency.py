@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from queue import Empty
 
-from clients.live import Processes, _toml, wait_until
+from clients.live import COME_UP_S, Processes, _toml, wait_until
 from clients.machine import StealMeter
 from schemas.codec import MEAS
 from schemas.component import ZenohConfig
@@ -77,8 +77,8 @@ def bench_latency(n: int = 3000, wait: str = "block", gap_s: float = 5e-4, cpus:
             def alive(k: str) -> bool:
                 return any(r.ok is not None for r in session.liveliness().get(k, timeout=0.5))
 
-            if not (wait_until(lambda: alive(key("energyctl", "bench", "alive")), 20.0)
-                    and wait_until(lambda: alive("bench/echo/alive"), 20.0)):
+            if not (wait_until(lambda: alive(key("energyctl", "bench", "alive")), COME_UP_S)
+                    and wait_until(lambda: alive("bench/echo/alive"), COME_UP_S)):
                 raise RuntimeError("daemon or echo did not come up")
             time.sleep(0.3)
             rtt: dict[str, list[int]] = {"daemon": [], "echo": []}

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from clients.live import wait_until
+from clients.live import COME_UP_S, wait_until
 from clients.machine import StealMeter
 from schemas.codec import MEAS
 from schemas.component import ZenohConfig
@@ -210,7 +210,7 @@ def _liveliness_sigkill(ep: str, script: Path, env: dict, runs: int) -> dict:
                                  stderr=subprocess.DEVNULL)
             try:
                 if not wait_until(lambda: any(r.ok is not None for r in
-                                              session.liveliness().get("mw/token/alive", timeout=0.5)), 20.0):
+                                              session.liveliness().get("mw/token/alive", timeout=0.5)), COME_UP_S):
                     continue
                 while sub.try_recv() is not None:  # its PUT
                     pass
@@ -351,7 +351,7 @@ def bench_middleware(n: int = 3000, receive_s: float = 3.0, progress=lambda m: N
         peer = subprocess.Popen([sys.executable, str(script), ep, "echo"], env=env, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.PIPE)
         if not wait_until(lambda: any(r.ok is not None for r in
-                                      listener.liveliness().get("mw/echo/alive", timeout=0.5)), 20.0):
+                                      listener.liveliness().get("mw/echo/alive", timeout=0.5)), COME_UP_S):
             raise RuntimeError("the peer process did not come up: " + (peer.stderr.read().decode()
                                                                        if peer.poll() is not None else ""))
         progress("put with a subscriber in another process")

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from clients.bench.realtime import judge, schedule_samples, within_band
-from clients.live import Processes, _last_json, _toml, configs_from_scenario, wait_until
+from clients.live import COME_UP_S, Processes, _last_json, _toml, configs_from_scenario, wait_until
 from clients.machine import StealMeter
 from schemas.component import ZenohConfig
 from schemas.scenario import load_scenario
@@ -126,8 +126,8 @@ def bench_soak(minutes: float, rate_hz: float = 10_000.0, query_hz: float = 100.
         try:
             if not wait_until(lambda: any(r.ok is not None for r in
                                           session.liveliness().get(key("energyctl", "source", "alive"), timeout=0.5)),
-                              20.0):
-                raise RuntimeError("daemon did not come up")
+                              COME_UP_S):
+                raise RuntimeError(f"daemon did not come up within {COME_UP_S:g} s")
             if query_hz > 0:
                 poller.thread.start()
             steal = StealMeter().start()
