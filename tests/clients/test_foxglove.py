@@ -466,3 +466,95 @@ def test_the_bridge_holds_every_parameter_it_knows_before_it_publishes_their_val
         assert bridge._hold_parameters() and not bridge.last_error
     finally:
         bridge.close()
+
+
+def test_a_client_churning_parameter_subscriptions_cannot_wedge_the_bridge():
+    """Issue 28, item 2: one client subscribes and unsubscribes, as fast as it can, to a parameter name the bridge
+    does not know (so each of its subscriptions is the first: the SDK calls the listener, needing the GIL, under its
+    parameter lock) while the config changes every 20 ms (the bridge rereads it every 20 ms and publishes). Before,
+    the parameters' thread called publish_parameter_values holding the GIL, which waits on that lock: the bridge
+    wedged (serving nobody; SIGTERM did not end it). Now another client still gets its updates and its answers, and
+    SIGTERM ends the bridge."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    from clients.live import SHUTDOWN_GRACE_S, port_open
+    from clients.query import QueryError, ask
+
+    with daemon_stack([]) as (_d, ep, _loop):
+        port = free_tcp_port()
+        bridge = subprocess.Popen(
+            [sys.executable, "-m", "clients.cli", "foxglove", "--components", "source", "--port", str(port),
+             "--poll-s", "0.02", "--mode", "peer", "--connect", ep], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        done = threading.Event()
+        churns, sets = [0], [0]
+        threads = []
+        watcher = None
+        try:
+            assert wait_until(lambda: port_open(f"tcp/127.0.0.1:{port}") or bridge.poll() is not None, 20.0)
+            assert bridge.poll() is None, bridge.communicate()[1][-2000:]
+            watcher = FoxgloveClient(port)
+            watcher.send({"op": "subscribeParameterUpdates", "parameterNames": ["source.controller.K_per_s"]})
+
+            def adversary():
+                with ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5.0) as ws:
+                    while not done.is_set():
+                        for op in ("subscribeParameterUpdates", "unsubscribeParameterUpdates"):
+                            ws.send(json.dumps({"op": op, "parameterNames": ["nobody.knows.this"]}))
+                        churns[0] += 1
+
+            def setter():
+                with open_session(ZenohConfig(mode="peer", connect=[ep])) as s:
+                    k = 0
+                    while not done.wait(0.02):
+                        k += 1
+                        try:
+                            ask(s, "energyctl", "source", "config", [f"controller.K_per_s={800 + k % 2 * 100}"], 3.0)
+                            sets[0] += 1
+                        except QueryError:
+                            pass
+
+            threads = [threading.Thread(target=f, daemon=True) for f in (adversary, setter)]
+            for t in threads:
+                t.start()
+
+            def updates() -> int:
+                return sum(1 for m in watcher.ops if m["op"] == "parameterValues" and "id" not in m)
+
+            # the adversary churns for 8 s, the config changes meanwhile; the watcher keeps getting the changes
+            deadline = time.monotonic() + 8.0
+            while time.monotonic() < deadline:
+                watcher.pump(lambda: False, 0.5)
+            assert churns[0] > 100 and sets[0] > 10, (churns, sets)
+            seen = updates()
+            assert seen > 0, f"no parameter update published (bridge exit code: {bridge.poll()})"
+            assert watcher.pump(lambda: updates() > seen, 5.0), "no parameter update published after 8 s of churn"
+            # a new client is still served: its getParameters answered
+            fresh = FoxgloveClient(port)
+            try:
+                fresh.send({"op": "getParameters", "parameterNames": ["source.controller.K_per_s"], "id": "g"})
+                assert fresh.pump(lambda: fresh.op("parameterValues", id="g"), 5.0), "the bridge serves nobody"
+            finally:
+                fresh.close()
+            done.set()
+            for t in threads:
+                t.join(5.0)
+            # a stop signal ends it (cleanly: it is not wedged)
+            bridge.send_signal(signal.SIGTERM)
+            try:
+                _out, err = bridge.communicate(timeout=SHUTDOWN_GRACE_S + 10)
+            except subprocess.TimeoutExpired:
+                pytest.fail("SIGTERM did not end the bridge")
+            assert bridge.returncode == 0, err[-2000:]
+        finally:
+            done.set()
+            if watcher is not None:
+                watcher.close()
+            if bridge.poll() is None:
+                bridge.kill()
+                bridge.communicate()
