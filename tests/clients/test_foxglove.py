@@ -489,8 +489,8 @@ def test_a_client_churning_parameter_subscriptions_cannot_wedge_the_bridge():
         port = free_tcp_port()
         bridge = subprocess.Popen(
             [sys.executable, "-m", "clients.cli", "foxglove", "--components", "source", "--port", str(port),
-             "--poll-s", "0.02", "--mode", "peer", "--connect", ep], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             "--poll-s", "0.02", "--mode", "peer", "--connect", ep], cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         done = threading.Event()
         churns, sets = [0], [0]
         threads = []
@@ -558,3 +558,36 @@ def test_a_client_churning_parameter_subscriptions_cannot_wedge_the_bridge():
             if bridge.poll() is None:
                 bridge.kill()
                 bridge.communicate()
+
+
+def test_the_ws_protocol_client_connects_only_offering_the_sdk_subprotocol(stack):
+    """Issue 28, item 9, with @foxglove/ws-protocol's own FoxgloveClient (tests/js/foxglove_client.mjs): offering its
+    default subprotocol "foxglove.websocket.v1" (what apps built on it send) the SDK refuses the handshake with HTTP
+    400; the same client offering "foxglove.sdk.v1" is served: the bridge's server info, and measurements decoded."""
+    import shutil
+    import subprocess
+
+    from conftest import ROOT
+
+    js = ROOT / "tests" / "js"
+    if shutil.which("node") is None or not (js / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
+        pytest.skip("needs node and npm install --prefix tests/js (@foxglove/ws-protocol)")
+    _d, ep = stack
+    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, rate_hz=RATE_HZ)
+    bridge.start()
+    try:
+        def run(subprotocol: str) -> dict:
+            r = subprocess.run(["node", str(js / "foxglove_client.mjs"), f"ws://127.0.0.1:{bridge.port}", subprotocol,
+                                "energyctl/source/meas", "5"], capture_output=True, text=True, timeout=30, cwd=js)
+            assert r.returncode == 0, r.stderr[-2000:]
+            return json.loads(r.stdout.strip().splitlines()[-1])
+
+        old = run("foxglove.websocket.v1")
+        assert old.get("error") == "HTTP 400", old
+        new = run("foxglove.sdk.v1")
+        assert "error" not in new, new
+        assert new["name"] == "energyctl" and "parameters" in new["capabilities"], new
+        assert new["schemaName"] == "energyctl.Measurement" and len(new["messages"]) == 5
+        assert all(m == expected_meas(m["seq"]) for m in new["messages"]), new["messages"]
+    finally:
+        bridge.close()
