@@ -454,17 +454,37 @@ def test_a_bridge_thread_that_fails_fails_the_bridge_visibly(monkeypatch):
         bridge.close()
 
 
-def test_the_bridge_holds_every_parameter_it_knows_before_it_publishes_their_values(stack):
-    """The parameter lock has the graph lock's hazard (GraphHold): the bridge's own connection subscribes to every
-    parameter name it read from the daemons, confirmed by the server, before the parameters thread publishes."""
+def test_a_change_made_elsewhere_reaches_the_subscribed_clients_through_the_server(stack):
+    """A config set outside Foxglove (energyctl query --set) is published to the clients subscribed to it: the
+    bridge's own connection asks the server with its token, the listener answers with the change (decision 0035).
+    A client's set with a name like the token but not it is an unknown parameter, not a publish."""
+    from clients.query import ask
+
     d, ep = stack
-    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, poll_s=0.2)
+    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, poll_s=0.1)
+    client = None
     try:
         bridge.start()
-        assert bridge._params and wait_until(lambda: bridge._hold.params == set(bridge._params), 5.0)
-        assert {n.split(".", 1)[0] for n in bridge._subscribed_params} == {"source"}  # the listener saw them
-        assert bridge._hold_parameters() and not bridge.last_error
+        client = FoxgloveClient(bridge.port)
+        client.send({"op": "subscribeParameterUpdates", "parameterNames": ["source.controller.K_per_s"]})
+        assert wait_until(lambda: "source.controller.K_per_s" in bridge._subscribed_params, 5.0)
+        with open_session(ZenohConfig(mode="peer", connect=[ep])) as s:
+            ask(s, "energyctl", "source", "config", ["controller.K_per_s=700"], 3.0)
+
+        def published() -> list:
+            return [p.get("value") for m in client.ops if m["op"] == "parameterValues" and "id" not in m
+                    for p in m["parameters"] if p["name"] == "source.controller.K_per_s"]
+
+        assert client.pump(lambda: 700.0 in published(), 5.0), client.ops
+        assert bridge.status()["param_publishes"] >= 1 and d.core.cfg.K_per_s == 700.0
+        forged = "energyctl-bridge-publish/" + "0" * 32
+        assert forged != bridge._token
+        assert client.set_parameter(forged, 1.0, "f1") == {}
+        assert client.pump(lambda: client.op("status", level=2)) and "unknown parameter" in \
+            client.op("status", level=2)["message"]
     finally:
+        if client is not None:
+            client.close()
         bridge.close()
 
 
