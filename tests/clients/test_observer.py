@@ -1,9 +1,10 @@
 """Issue 28, item 3: a monitor that stops reading (SIGSTOPped) must not hold up the stack beside it. The monitor
 is a Zenoh peer subscribed to energyctl/** that asks the controller's status every 50 ms (as a bridge or dashboard
 does), with a 4 KiB socket receive buffer so that its stop fills the senders' queues at once. It is stopped for
-12 s (past Zenoh's 10 s lease, as the issue's 15 s stops were), and meanwhile `energyctl query status` runs once
-a second from new sessions (clients.bench.observer). Before, the first such query took 11 s or failed (realtime;
-measured here: 11.2 s and a failure, 11.4 s in `energyctl bench observer`)."""
+12 s (past Zenoh's 10 s lease, as the issue's 15 s stops were), and meanwhile what `energyctl query status` does
+(a new session, the query, its close) runs once a second (clients.bench.observer). Every process of the stack must
+end well too: Zenoh's close of a session that a stopped peer is connected to can time out (after 10 s), which ended
+the plant with exit 1 before (bus.close_session). Not asserted: how long those closes take (up to Zenoh's 10 s)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from clients.bench.observer import run_arm
 from clients.commands.demo import DEMO_REALTIME_DELAY, DEMO_REALTIME_HZ, DEMO_REALTIME_SETS
 from schemas.scenario import load_scenario
 
-QUERY_S = 6.0  # a query's own timeout (3 s) and its process's start; before, the new session's close hung 10 s
+QUERY_S = 5.0  # a new session and its query (3 s timeout)
 # a stall of Zenoh's block wait (5 s before it gives up on a peer) or its session-close timeout (10 s) is seconds;
 # this machine's own scheduling noise under load is tens to a few hundred milliseconds
 STALL_US = 2.5e6
