@@ -9,7 +9,7 @@ import time
 from schemas.codec import DecodeError, Z
 from schemas.component import ZenohConfig
 from schemas.messages import Command, Estimate, Interaction, Measurement
-from service.daemon.bus import ASK_CC, close_session, key, open_session
+from service.daemon.bus import close_session, key, open_session
 
 
 class QueryError(RuntimeError):
@@ -37,8 +37,7 @@ def ask(session, prefix: str, component: str, what: str, sets: list[str] | None 
     payload = json.dumps({"set": sets}) if sets else None
     deadline = time.monotonic() + timeout_s
     while True:  # the route to a just-started peer can take a moment to appear
-        replies = list(session.get(selector, payload=payload, timeout=max(0.2, deadline - time.monotonic()),
-                                   congestion_control=ASK_CC))
+        replies = list(session.get(selector, payload=payload, timeout=max(0.2, deadline - time.monotonic())))
         if replies or time.monotonic() >= deadline:
             break
         time.sleep(0.05)

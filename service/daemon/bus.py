@@ -27,13 +27,6 @@ from schemas.component import ZenohConfig
 from schemas.scenario import ScenarioError
 
 TX_QUEUE_BATCHES = 16  # zenoh.tx_queue_batches unset and no config file: Zenoh's default of 2 drops after 1 ms stalls
-# No reader may hold up a writer (decision 0034). Where a peer's send queue is full (it stopped reading: a SIGSTOPped
-# monitor, a bridge, a logger), a message that may be dropped waits this long, not Zenoh's 1 ms, before it is ...
-WAIT_BEFORE_DROP_US = 50
-# ... and one that may not (declarations, replies of others, session close) waits this long, not Zenoh's 5 s, before
-# Zenoh closes the transport to that peer (it reconnects when it reads again); Zenoh may hold its routing tables
-# meanwhile, stalling every other peer's messages in this process
-WAIT_BEFORE_CLOSE_US = 100_000
 
 
 PEER_DEFAULT_LISTEN = "tcp/127.0.0.1:0"  # a peer given no listen endpoint (and no config file) listens here
@@ -79,11 +72,8 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
     if not z.config_file or not z.multicast_scouting:
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(z.multicast_scouting))
     # fields with a default of ours: set, or unset and no config file (a user's own file keeps its value)
-    cc = "transport/link/tx/queue/congestion_control"
     for path, value, ours in (("transport/link/tx/queue/size/data", z.tx_queue_batches, TX_QUEUE_BATCHES),
-                              ("transport/shared_memory/enabled", z.shared_memory, False),
-                              (f"{cc}/drop/wait_before_drop", None, WAIT_BEFORE_DROP_US),
-                              (f"{cc}/block/wait_before_close", None, WAIT_BEFORE_CLOSE_US)):
+                              ("transport/shared_memory/enabled", z.shared_memory, False)):
         if value is None and not z.config_file:
             value = ours
         if value is not None:
@@ -164,17 +154,10 @@ def free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
-# queries between our processes, and their replies (a reply goes with its query's congestion control): dropped rather
-# than wait on a peer that stopped reading; the asker times out and may ask again (decision 0034)
-ASK_CC = zenoh.CongestionControl.DROP
-
-
 def publisher(session: zenoh.Session, key_expr: str) -> zenoh.Publisher:
-    """Control-path publisher (measurements, commands, interaction messages, allocations, the rig's grid): express
-    (no batching), dropped rather than wait on a peer that does not read (WAIT_BEFORE_DROP_US), and at Zenoh's
-    real-time priority, a send queue of its own on every link, ahead of replies and other data (decision 0034)."""
-    return session.declare_publisher(key_expr, express=True, congestion_control=zenoh.CongestionControl.DROP,
-                                     priority=zenoh.Priority.REAL_TIME)
+    """Hot-path publisher: express (no batching), drop under congestion rather than block. Zenoh's default priority
+    and waits: real-time priority and shorter waits cost missed commands here (decision 0034)."""
+    return session.declare_publisher(key_expr, express=True, congestion_control=zenoh.CongestionControl.DROP)
 
 
 class NewestQueue(Queue):
@@ -233,7 +216,7 @@ def answer(query, ok: bool, body: dict, own_key: str) -> None:
     except (TypeError, ValueError) as e:
         ok, text = False, json.dumps({"error": f"the reply could not be encoded: {type(e).__name__}: {e}"})
     try:
-        if ok:  # with the query's congestion control (Zenoh 1.10 ignores the reply's own): ours ask with DROP
+        if ok:
             query.reply(own_key, text)
         else:
             query.reply_err(text)
@@ -266,7 +249,7 @@ def request(session: zenoh.Session, selector: str, body: dict | None, timeout_s:
     none came within timeout_s or the reply was not JSON."""
     payload = json.dumps(body) if body is not None else None
     try:
-        for r in session.get(selector, payload=payload, timeout=timeout_s, congestion_control=ASK_CC):
+        for r in session.get(selector, payload=payload, timeout=timeout_s):
             ok = r.ok is not None
             raw = (r.ok if ok else r.err).payload.to_bytes()
             try:
