@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import json
 import math
+import secrets
 import sys
 import threading
 import time
@@ -272,13 +273,17 @@ class Bridge(Served):
         self._params: dict[str, object] = {}  # parameter name -> value, as last read from the daemons
         self._plock = threading.Lock()
         self._subscribed_params: set[str] = set()
+        # values changed elsewhere, waiting for the SDK to publish them (_poll), and the parameter name only the
+        # bridge's own connection sends, which marks its setParameters as that publish
+        self._outgoing: dict[str, object] = {}
+        self._token = "energyctl-bridge-publish/" + secrets.token_hex(16)
         self._stop = threading.Event()
         # the graph's or the parameters' thread ended by an unexpected exception: the bridge has failed (its command
         # exits 1), rather than serve a graph or parameters nobody updates any more
         self.failure = Failure("energyctl foxglove")
         self._poller: threading.Thread | None = None
         self.counts = {"param_gets": 0, "param_sets": 0, "param_set_errors": 0, "config_reads_failed": 0,
-                       "service_calls": 0, "service_errors": 0}
+                       "service_calls": 0, "service_errors": 0, "param_publishes": 0}
         self._clock = threading.Lock()
         self.last_error = ""
         # the connection graph: live components (by their liveliness tokens), kept by the graph thread
@@ -423,38 +428,46 @@ class Bridge(Served):
         return changed
 
     def _poll(self) -> None:
-        """The parameters' thread, their only publisher: every poll_s rereads the configs of the components whose
-        parameters are subscribed (by the bridge's own hold: all it knows) and publishes changes made elsewhere
-        (energyctl query --set, another client), each after the hold has subscribed every name known by then."""
-        self._hold_parameters()
+        """The parameters' thread: every poll_s rereads the configs of the components whose parameters some client
+        subscribes to and publishes changes made elsewhere (energyctl query --set, another client).
+
+        It never calls the SDK's publish_parameter_values: that takes the SDK's parameter-subscription lock without
+        releasing the GIL, and the SDK calls the listener (Python: it needs the GIL) under that lock whenever a
+        client's subscription to a name is the first or its leaving the last, which any client can make happen
+        (a name the bridge does not know). Instead the bridge's own connection (GraphHold) sends the server a
+        setParameters naming only the bridge's secret token; the listener answers it with the changed values, and
+        the SDK publishes them to the subscribed clients from its own task, with no Python thread waiting on its
+        locks."""
         while not self._stop.wait(self.poll_s):
             with self._plock:
                 wanted = {n.split(".", 1)[0] for n in self._subscribed_params}
-            for cid in (c for c in self.ids if c in wanted or not self._held(c)):
-                changed = self._refresh(cid, GET_TIMEOUT_S)
-                server = self.server
-                if changed and server is not None and not self._stop.is_set() and self._hold_parameters():
-                    server.publish_parameter_values(self._parameters(changed))
+            changed: dict[str, object] = {}
+            for cid in (c for c in self.ids if c in wanted):
+                changed.update(self._refresh(cid, GET_TIMEOUT_S) or {})
+            if changed and not self._stop.is_set():
+                self._publish_parameters(changed)
 
-    def _held(self, cid: str) -> bool:
+    def _publish_parameters(self, values: dict[str, object]) -> bool:
+        """Hands values to the SDK for every client subscribed to them, through the bridge's own connection (see
+        _poll); False (and last_error) if that connection is gone or the server did not answer within its timeout
+        (the values are sent with the next change then)."""
         hold = self._hold
-        return hold is not None and any(n.split(".", 1)[0] == cid for n in hold.params)
-
-    def _hold_parameters(self) -> bool:
-        """The hold subscribes to every parameter name the bridge knows and has not subscribed yet, so that no
-        client's subscription to one is the first nor its leaving the last (the SDK calls the listener under its
-        parameter lock then, which publish_parameter_values reads holding the GIL: GraphHold). False if the hold
-        is gone or the server did not take them (nothing is published then; next time again)."""
-        hold = self._hold
-        if hold is None or hold.lost:
-            return False
         with self._plock:
-            new = sorted(set(self._params) - hold.params)
-        if new and not hold.subscribe_parameters(new):
-            self.last_error = "parameter values not published: the bridge's own subscription was not taken"
+            self._outgoing.update(values)
+        if hold is None or hold.lost:
+            self.last_error = "parameter values not published: the bridge's own connection is gone"
             return False
-        hold.params.update(new)
+        if not hold.set_token(self._token):
+            self.last_error = "parameter values not published: the server did not answer the bridge's own connection"
+            return False
+        self._count("param_publishes")
         return True
+
+    def _take_outgoing(self) -> list:
+        """The listener's answer to the bridge's own setParameters: the values waiting to be published."""
+        with self._plock:
+            values, self._outgoing = self._outgoing, {}
+        return self._parameters(values)
 
     @staticmethod
     def _parameters(values: dict[str, object]) -> list:
@@ -481,6 +494,8 @@ class Bridge(Served):
 
         from clients.query import QueryError
 
+        if any(p.name == self._token for p in params):  # the bridge's own connection: publish (see _poll)
+            return self._take_outgoing()
         self._count("param_sets")
         by_id: dict[str, list[str]] = {}
         names = [p.name for p in params]
@@ -655,7 +670,10 @@ class GraphHold:
     reproduced here in 1 of 9 runs). With this subscription taken before the first publish and kept until the
     server has stopped, the SDK never calls Python under that lock while anything publishes.
 
-    The same for parameters: it subscribes to every parameter name the bridge knows (Bridge._hold_parameters).
+    Parameters have the same hazard (the SDK calls the listener under its parameter-subscription lock, which
+    ``publish_parameter_values`` takes holding the GIL), but a hold cannot cover it: any client can subscribe to a
+    name nobody else does. So the bridge never calls publish_parameter_values; this connection asks the server to
+    publish instead (``set_token``, Bridge._poll).
 
     The few lines of RFC 6455 a client needs: the upgrade request, masked text frames; whatever the server
     sends (its info, advertisements, graph updates) is read and dropped by a thread of its own, which sets
@@ -671,7 +689,6 @@ class GraphHold:
         import socket
 
         self.ready, self.lost, self._closing = threading.Event(), False, False
-        self.params: set[str] = set()  # parameter names this connection subscribes to (Bridge._hold_parameters)
         self._marks: dict[bytes, threading.Event] = {}  # request ids awaited in the server's answers
         self._n = 0
         host = "127.0.0.1" if host in ("", "0.0.0.0") else "::1" if host == "::" else host
@@ -710,18 +727,16 @@ class GraphHold:
                                f"subscription within {cls.TIMEOUT_S:g} s")
         return hold
 
-    def subscribe_parameters(self, names: list[str]) -> bool:
-        """Subscribes this connection to the parameters names and waits until the server has taken that: the answer
-        to a getParameters sent after it, which the server handles in order (False: none within TIMEOUT_S). One
-        caller at a time (the bridge's parameters thread)."""
+    def set_token(self, token: str) -> bool:
+        """Sends the server a setParameters naming only ``token`` (Bridge._poll: the listener answers it with the
+        values to publish, which the SDK then publishes from its own task) and waits for the server's answer to it
+        (False: none within TIMEOUT_S, or the connection is gone). One caller at a time (the parameters thread)."""
         self._n += 1
-        mark = f"energyctl-hold-{self._n}".encode()
+        mark = f'"energyctl-hold-{self._n}"'.encode()  # with its quotes: -1 is not found inside -10
         ev = self._marks[mark] = threading.Event()
         try:
-            self.sock.sendall(self.text_frame(json.dumps({"op": "subscribeParameterUpdates",
-                                                          "parameterNames": names}).encode())
-                              + self.text_frame(json.dumps({"op": "getParameters", "parameterNames": [],
-                                                            "id": mark.decode()}).encode()))
+            self.sock.sendall(self.text_frame(json.dumps({"op": "setParameters", "parameters": [
+                {"name": token, "value": self._n}], "id": mark.decode().strip('"')}).encode()))
             return ev.wait(self.TIMEOUT_S)
         except OSError:
             return False

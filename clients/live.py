@@ -25,8 +25,9 @@ REALTIME_NESTED_RATES = {"nested_K_u_per_s": 2000.0, "nested_K_P_per_s": 1000.0,
 
 def install_stop_handlers(stop: threading.Event) -> None:
     """SIGINT/SIGTERM ask for a clean stop; if the stop hangs (we saw a plant stuck in Zenoh's session close,
-    a GIL/callback deadlock), SIGALRM's default action ends the process after SHUTDOWN_GRACE_S: it needs
-    no Python code, so it works even when the interpreter cannot run any."""
+    a GIL/callback deadlock), SIGALRM's default action ends the process after SHUTDOWN_GRACE_S. The alarm is armed
+    in C at the signal itself (service._stopsignal), not by the Python handler, which never runs in a process whose
+    GIL is held by a deadlocked thread; without the compiled module, by the Python handler."""
 
     def handler(signum, frame):  # noqa: ARG001
         stop.set()
@@ -34,6 +35,12 @@ def install_stop_handlers(stop: threading.Event) -> None:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    try:
+        from service._stopsignal import arm
+    except ImportError:  # built without a C compiler
+        return
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        arm(sig, SHUTDOWN_GRACE_S)
 
 
 def start_process(cfg, command: str) -> threading.Event:

@@ -9,7 +9,7 @@ import time
 from schemas.codec import DecodeError, Z
 from schemas.component import ZenohConfig
 from schemas.messages import Command, Estimate, Interaction, Measurement
-from service.daemon.bus import key, open_session
+from service.daemon.bus import close_session, key, open_session
 
 
 class QueryError(RuntimeError):
@@ -25,7 +25,7 @@ def query(z: ZenohConfig, prefix: str, component: str, what: str, sets: list[str
             return _interaction(session, prefix, component, timeout_s)
         return ask(session, prefix, component, what, sets, timeout_s)
     finally:
-        session.close()
+        close_session(session)
 
 
 def ask(session, prefix: str, component: str, what: str, sets: list[str] | None = None,

@@ -125,6 +125,19 @@ def _foxglove(args: argparse.Namespace) -> dict:
                           progress=lambda r: print(f"  {json.dumps(r)[:300]}", file=sys.stderr, flush=True))
 
 
+def _observer(args: argparse.Namespace) -> dict:
+    from clients.bench.observer import bench_observer
+
+    realtime = not args.lockstep
+    sets = [*(DEMO_REALTIME_SETS if realtime else []), *(args.set or [])]
+    seconds = args.seconds or 14.0
+    return bench_observer(load(_scenario(args), sets), lockstep=not realtime,
+                          rate_hz=float(args.rates) if args.rates else (DEMO_REALTIME_HZ if realtime else None),
+                          delay=DEMO_REALTIME_DELAY if realtime else None, duration_s=seconds,
+                          stop_s=max(1.0, seconds - 2.0), pairs=args.runs,
+                          progress=lambda r: print(f"  {json.dumps(r)[:400]}", file=sys.stderr, flush=True))
+
+
 def _network(args: argparse.Namespace) -> dict:
     from clients.bench.network import bench_network
 
@@ -181,6 +194,8 @@ BENCHES: dict[str, Bench] = {
     "foxglove": Bench(_foxglove, "the Foxglove bridge's cost to the stack it watches: daemon overruns and the run's "
                                  "wall time without and with it (alternated, --runs pairs), its CPU share "
                                  "(--realtime: wall-clock pacing, --rates one rate)"),
+    "observer": Bench(_observer, "a monitor SIGSTOPped beside the realtime stack (--lockstep: the lockstep one): the "
+                      "plant's measurement -> command latency and status queries, with it reading and stopped"),
     "network": Bench(_network, "a network's offline cost per source per tick at 2, 4, 8 and 16 sources (radial "
                                "feeders; --seconds simulated each, default 0.2)"),
     "network-live": Bench(_network_live, "the live network on loopback (rig, coordinator, a daemon per source): time "
@@ -249,6 +264,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     add_scenario_set(b)
     b.add_argument("--writer-cpus", metavar="N,N,...",
                    help="recorder: CPUs the recorder's writer process may run on (as log_writer_cpus; default any)")
+    b.add_argument("--lockstep", action="store_true",
+                   help="observer: the lockstep stack instead of the realtime one (2 kHz, as the demo's)")
     b.add_argument("--realtime", action="store_true",
                    help=f"recovery: wall-clock pacing with demo --realtime's settings ({DEMO_REALTIME_HZ / 1e3:g} kHz, "
                         f"{DEMO_REALTIME_DELAY}-sample schedule, {' '.join(DEMO_REALTIME_SETS)}) instead of lockstep")

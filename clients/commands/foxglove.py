@@ -50,6 +50,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     fx.add_argument("--rate-hz", type=float, default=1000.0,
                     help="at most this many messages a second on each channel, the rest dropped and counted "
                          "(default: %(default)s; 0: all; not with --log, which sends every message)")
+    fx.add_argument("--poll-s", type=float, default=1.0,
+                    help="how often the configs of components whose parameters a client subscribes to are reread, "
+                         "their changes published (default: %(default)s s)")
     fx.add_argument("--backlog", type=int, default=65536,
                     help="with --log: messages buffered for each client before the oldest are dropped "
                          "(default: %(default)s)")
@@ -73,6 +76,9 @@ def run(args: argparse.Namespace) -> int:
     if args.rate_hz < 0:
         print("energyctl foxglove: --rate-hz: must be 0 (all) or more", file=sys.stderr)
         return 2
+    if not args.poll_s > 0:
+        print("energyctl foxglove: --poll-s: must be more than 0", file=sys.stderr)
+        return 2
     if args.backlog < 1:
         print("energyctl foxglove: --backlog: must be 1 or more", file=sys.stderr)
         return 2
@@ -92,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
             f"playing {len(args.log)} log(s), {len(player.channels)} channels, "
             f"{(player.end_ns - player.start_ns) / 1e9:.3f} s"))
     bridge = Bridge(zenoh_from_args(args), components, prefix=args.prefix, port=args.port, rate_hz=args.rate_hz,
-                    host=args.host)
+                    host=args.host, poll_s=args.poll_s)
     return _serve(bridge, args, stop, (), lambda: f"serving {', '.join(bridge.ids)}")
 
 

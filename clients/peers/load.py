@@ -12,7 +12,7 @@ from clients.machine import ProcessCpu
 from schemas.codec import MEAS, DecodeError, Z
 from schemas.component import LoadPeerConfig
 from service.core.feasibility import announced_window, load_box
-from service.daemon.bus import key, latest, open_session, publisher, queued
+from service.daemon.bus import close_session, key, latest, open_session, publisher, queued
 from service.plant.profiles import Profile
 
 NO_MEAS_WARN_S = 5.0  # lockstep: no measurement this long after the start is said on stderr (once)
@@ -150,7 +150,7 @@ class LoadPeer:
             if self.rec is not None:
                 self.rec.close()
         finally:
-            session.close()
+            close_session(session)
         return {"sent": self.sent, "log": self.rec.paths if self.rec is not None else None, "cpu_pct": cpu.pct}
 
 

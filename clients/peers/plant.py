@@ -19,7 +19,7 @@ from clients.machine import ProcessCpu, StealMeter
 from clients.peers.common import matched, wait_alive
 from schemas.codec import CMD, MEAS, PLANT, DecodeError
 from schemas.component import PlantPeerConfig
-from service.daemon.bus import key, open_session, publisher, queued
+from service.daemon.bus import close_session, key, open_session, publisher, queued
 from service.plant.profiles import Profile
 from service.plant.rlc import CommandSchedule, RLCPlant, Sensor, load_current
 from service.sim import compute_metrics, profile_events, substeps, trace_divergence
@@ -148,7 +148,7 @@ class PlantRig:
             raise
         finally:
             if session is not None:
-                session.close()
+                close_session(session)
         return self.result()
 
     def connect(self, session) -> None:

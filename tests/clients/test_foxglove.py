@@ -454,15 +454,161 @@ def test_a_bridge_thread_that_fails_fails_the_bridge_visibly(monkeypatch):
         bridge.close()
 
 
-def test_the_bridge_holds_every_parameter_it_knows_before_it_publishes_their_values(stack):
-    """The parameter lock has the graph lock's hazard (GraphHold): the bridge's own connection subscribes to every
-    parameter name it read from the daemons, confirmed by the server, before the parameters thread publishes."""
+def test_a_change_made_elsewhere_reaches_the_subscribed_clients_through_the_server(stack):
+    """A config set outside Foxglove (energyctl query --set) is published to the clients subscribed to it: the
+    bridge's own connection asks the server with its token, the listener answers with the change (decision 0035).
+    A client's set with a name like the token but not it is an unknown parameter, not a publish."""
+    from clients.query import ask
+
     d, ep = stack
-    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, poll_s=0.2)
+    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, poll_s=0.1)
+    client = None
     try:
         bridge.start()
-        assert bridge._params and wait_until(lambda: bridge._hold.params == set(bridge._params), 5.0)
-        assert {n.split(".", 1)[0] for n in bridge._subscribed_params} == {"source"}  # the listener saw them
-        assert bridge._hold_parameters() and not bridge.last_error
+        client = FoxgloveClient(bridge.port)
+        client.send({"op": "subscribeParameterUpdates", "parameterNames": ["source.controller.K_per_s"]})
+        assert wait_until(lambda: "source.controller.K_per_s" in bridge._subscribed_params, 5.0)
+        with open_session(ZenohConfig(mode="peer", connect=[ep])) as s:
+            ask(s, "energyctl", "source", "config", ["controller.K_per_s=700"], 3.0)
+
+        def published() -> list:
+            return [p.get("value") for m in client.ops if m["op"] == "parameterValues" and "id" not in m
+                    for p in m["parameters"] if p["name"] == "source.controller.K_per_s"]
+
+        assert client.pump(lambda: 700.0 in published(), 5.0), client.ops
+        # (counted when the server's answer reaches the bridge's connection, after the client may have the value)
+        assert wait_until(lambda: bridge.status()["param_publishes"] >= 1, 5.0) and d.core.cfg.K_per_s == 700.0
+        forged = "energyctl-bridge-publish/" + "0" * 32
+        assert forged != bridge._token
+        assert client.set_parameter(forged, 1.0, "f1") == {}
+        assert client.pump(lambda: client.op("status", level=2)) and "unknown parameter" in \
+            client.op("status", level=2)["message"]
+    finally:
+        if client is not None:
+            client.close()
+        bridge.close()
+
+
+def test_a_client_churning_parameter_subscriptions_cannot_wedge_the_bridge():
+    """Issue 28, item 2: one client subscribes and unsubscribes, as fast as it can, to a parameter name the bridge
+    does not know (so each of its subscriptions is the first: the SDK calls the listener, needing the GIL, under its
+    parameter lock) while the config changes every 20 ms (the bridge rereads it every 20 ms and publishes). Before,
+    the parameters' thread called publish_parameter_values holding the GIL, which waits on that lock: the bridge
+    wedged (serving nobody; SIGTERM did not end it). Now another client still gets its updates and its answers, and
+    SIGTERM ends the bridge."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    from clients.live import SHUTDOWN_GRACE_S, port_open
+    from clients.query import QueryError, ask
+
+    with daemon_stack([]) as (_d, ep, _loop):
+        port = free_tcp_port()
+        bridge = subprocess.Popen(
+            [sys.executable, "-m", "clients.cli", "foxglove", "--components", "source", "--port", str(port),
+             "--poll-s", "0.02", "--mode", "peer", "--connect", ep], cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        done = threading.Event()
+        churns, sets = [0], [0]
+        threads = []
+        watcher = None
+        try:
+            assert wait_until(lambda: port_open(f"tcp/127.0.0.1:{port}") or bridge.poll() is not None, 20.0)
+            assert bridge.poll() is None, bridge.communicate()[1][-2000:]
+            watcher = FoxgloveClient(port)
+            watcher.send({"op": "subscribeParameterUpdates", "parameterNames": ["source.controller.K_per_s"]})
+
+            def adversary():
+                with ws_client.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5.0) as ws:
+                    while not done.is_set():
+                        for op in ("subscribeParameterUpdates", "unsubscribeParameterUpdates"):
+                            ws.send(json.dumps({"op": op, "parameterNames": ["nobody.knows.this"]}))
+                        churns[0] += 1
+
+            def setter():
+                with open_session(ZenohConfig(mode="peer", connect=[ep])) as s:
+                    k = 0
+                    while not done.wait(0.02):
+                        k += 1
+                        try:
+                            ask(s, "energyctl", "source", "config", [f"controller.K_per_s={800 + k % 2 * 100}"], 3.0)
+                            sets[0] += 1
+                        except QueryError:
+                            pass
+
+            threads = [threading.Thread(target=f, daemon=True) for f in (adversary, setter)]
+            for t in threads:
+                t.start()
+
+            def updates() -> int:
+                return sum(1 for m in watcher.ops if m["op"] == "parameterValues" and "id" not in m)
+
+            # the adversary churns for 8 s, the config changes meanwhile; the watcher keeps getting the changes
+            deadline = time.monotonic() + 8.0
+            while time.monotonic() < deadline:
+                watcher.pump(lambda: False, 0.5)
+            assert churns[0] > 100 and sets[0] > 10, (churns, sets)
+            seen = updates()
+            assert seen > 0, f"no parameter update published (bridge exit code: {bridge.poll()})"
+            assert watcher.pump(lambda: updates() > seen, 5.0), "no parameter update published after 8 s of churn"
+            # a new client is still served: its getParameters answered
+            fresh = FoxgloveClient(port)
+            try:
+                fresh.send({"op": "getParameters", "parameterNames": ["source.controller.K_per_s"], "id": "g"})
+                assert fresh.pump(lambda: fresh.op("parameterValues", id="g"), 5.0), "the bridge serves nobody"
+            finally:
+                fresh.close()
+            done.set()
+            for t in threads:
+                t.join(5.0)
+            # a stop signal ends it (cleanly: it is not wedged)
+            bridge.send_signal(signal.SIGTERM)
+            try:
+                _out, err = bridge.communicate(timeout=SHUTDOWN_GRACE_S + 10)
+            except subprocess.TimeoutExpired:
+                pytest.fail("SIGTERM did not end the bridge")
+            assert bridge.returncode == 0, err[-2000:]
+        finally:
+            done.set()
+            if watcher is not None:
+                watcher.close()
+            if bridge.poll() is None:
+                bridge.kill()
+                bridge.communicate()
+
+
+def test_the_ws_protocol_client_connects_only_offering_the_sdk_subprotocol(stack):
+    """Issue 28, item 9, with @foxglove/ws-protocol's own FoxgloveClient (tests/js/foxglove_client.mjs): offering its
+    default subprotocol "foxglove.websocket.v1" (what apps built on it send) the SDK refuses the handshake with HTTP
+    400; the same client offering "foxglove.sdk.v1" is served: the bridge's server info, and measurements decoded."""
+    import shutil
+    import subprocess
+
+    from conftest import ROOT
+
+    js = ROOT / "tests" / "js"
+    if shutil.which("node") is None or not (js / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
+        pytest.skip("needs node and npm install --prefix tests/js (@foxglove/ws-protocol)")
+    _d, ep = stack
+    bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, rate_hz=RATE_HZ)
+    bridge.start()
+    try:
+        def run(subprotocol: str) -> dict:
+            r = subprocess.run(["node", str(js / "foxglove_client.mjs"), f"ws://127.0.0.1:{bridge.port}", subprotocol,
+                                "energyctl/source/meas", "5"], capture_output=True, text=True, timeout=30, cwd=js)
+            assert r.returncode == 0, r.stderr[-2000:]
+            return json.loads(r.stdout.strip().splitlines()[-1])
+
+        old = run("foxglove.websocket.v1")
+        assert old.get("error") == "HTTP 400", old
+        new = run("foxglove.sdk.v1")
+        assert "error" not in new, new
+        assert new["name"] == "energyctl" and "parameters" in new["capabilities"], new
+        assert new["schemaName"] == "energyctl.Measurement" and len(new["messages"]) == 5
+        assert all(m == expected_meas(m["seq"]) for m in new["messages"]), new["messages"]
     finally:
         bridge.close()
