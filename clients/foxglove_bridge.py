@@ -47,9 +47,9 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from schemas.codec import CMD, MEAS, Codec, DecodeError, Z
+from schemas.codec import CMD, EST, MEAS, TICK_IN, Codec, DecodeError, Z
 from schemas.component import ZenohConfig
-from schemas.messages import json_schema
+from schemas.messages import Event, json_schema
 from schemas.replies import REPLY_MODELS
 from service.daemon.bus import key, open_session
 from service.daemon.failure import Failure, guarded
@@ -57,6 +57,11 @@ from service.daemon.failure import Failure, guarded
 # Zenoh leaf -> (the daemon's MCAP topic leaf, schema name, codec)
 STREAMS = {"meas": ("meas", "energyctl.Measurement", MEAS), "cmd": ("cmd", "energyctl.Command", CMD),
            "z": ("z_out", "energyctl.Interaction", Z)}
+# the same for what a daemon with log_live_hz > 0 publishes from its recorder, already as the log's JSON text:
+# (topic leaf, schema name, model); passed through as they come (decimated by the daemon and here)
+LIVE_STREAMS = {"est": ("est", "energyctl.Estimate", EST.model), "z_in": ("z_in", "energyctl.TickInput",
+                                                                             TICK_IN.model),
+                "events": ("events", "energyctl.Event", Event)}
 SET_TIMEOUT_S = 3.0  # the daemon refuses a set its loop did not take within 2 s: allow for that answer
 GET_TIMEOUT_S = 1.0
 
@@ -102,7 +107,7 @@ class Stream:
 
     key: str
     topic: str
-    codec: Codec
+    codec: Codec | None  # None: the payload is the message's JSON text already (LIVE_STREAMS)
     channel: object
     decimator: Decimator
     bools: tuple[int, ...]
@@ -124,6 +129,11 @@ class Stream:
             if not self.channel.has_sinks():
                 self.unsubscribed += 1
                 return
+        if self.codec is None:
+            self.channel.log(sample.payload.to_bytes())
+            with self.lock:
+                self.logged += 1
+            return
         try:
             vals = self.codec.decode(sample.payload.to_bytes())
         except DecodeError as e:
@@ -315,6 +325,14 @@ class Bridge(Served):
                     topic = key(self.prefix, cid, topic_leaf)
                     ch = foxglove.Channel(topic, schema=schema, message_encoding="json", context=self.context)
                     s = Stream(zkey, topic, codec, ch, Decimator(self.rate_hz), codec.bool_positions)
+                    self.streams.append(s)
+                    self._subs.append(self.session.declare_subscriber(zkey, s.on_sample))
+                for leaf, (topic_leaf, schema_name, model) in LIVE_STREAMS.items():
+                    zkey = topic = key(self.prefix, cid, topic_leaf)
+                    schema = foxglove.Schema(name=schema_name, encoding="jsonschema",
+                                             data=json.dumps(json_schema(model)).encode())
+                    ch = foxglove.Channel(topic, schema=schema, message_encoding="json", context=self.context)
+                    s = Stream(zkey, topic, None, ch, Decimator(0 if leaf == "events" else self.rate_hz), ())
                     self.streams.append(s)
                     self._subs.append(self.session.declare_subscriber(zkey, s.on_sample))
             for cid in self.ids:

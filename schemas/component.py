@@ -284,6 +284,12 @@ class ComponentConfig(Named):
         default=None, description="a neighbour's interaction message with |P_r_out|, |P_min| or |P_max| above this is "
                                   "rejected (counted by field), its rates (P_r_out_dot, Qdot_r_out, P_dot_min, "
                                   "P_dot_max) above this x loop.rate_hz too, W; None: meas_v_max_V x meas_i_max_A")
+    log_live_hz: Annotated[float, Field(ge=0, le=1000)] = Field(
+        default=0.0, description="the recorder's process also publishes the estimates (est), the tick's inputs (z_in) "
+                                 "and every event (events) on PREFIX/ID/est, z_in and events, as the JSON the log "
+                                 "holds, est and z_in at most this often per second of sample time, for live views "
+                                 "(energyctl foxglove); dropped under congestion, background priority; needs logging "
+                                 "on; 0: off, Hz")
     query_max_bytes: Annotated[int, Field(ge=1024, le=16 << 20)] = Field(
         default=65536, description="a config/set request larger than this is refused before it is read (not parsed, "
                                    "not echoed), bytes")

@@ -34,7 +34,7 @@ from service.core import core_metadata, effective_gain, make_core
 from service.core.control import recovery_rate
 from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from service.core.interaction import outgoing_power_at as _outgoing_power_at
-from service.daemon.bus import key, latest, open_session, publisher, queued, serve_queries
+from service.daemon.bus import key, latest, open_session, publisher, queued, serve_queries, zenoh_config
 from service.daemon.failure import Failure
 from service.daemon.forecast_worker import ForecastWorker
 from service.daemon.loop_stats import HIST, LoopStats
@@ -206,9 +206,18 @@ class Daemon(DaemonQueries):
         meta = {"config": {"json": c.model_dump_json()}, "core": {"json": core_metadata(
             self.core.cfg, c.model, self.period_s, self.core.d)}, "build": {"git": git_revision()}}
         self.log_path = path
+        live = None
+        if c.log_live_hz > 0:  # est, z_in and events live, from the writer's process (RingWriter.tap)
+            z = c.zenoh  # a session of its own: it listens nowhere, it connects where the daemon does or listens
+            reach = list(z.connect) + [e for e in z.listen if not e.endswith(":0")]
+            if z.config_file is None and reach:
+                zl = z.model_copy(update={"listen": [], "connect": reach})
+                live = (str(zenoh_config(zl)), {t: key(c.prefix, c.id, t.rsplit("/", 1)[1])
+                                                for t in (self.t_est, self.t_zin, self.t_ev)}, 1.0 / c.log_live_hz)
         return RingRecorder(path, topics, meta, slots=c.log_queue, rotate_bytes=c.log_rotate_bytes,
                             rotate_s=c.log_rotate_s, writer_cpus=c.log_writer_cpus,
-                            groups=[(self.t_meas, self.t_zin, self.t_cmd)])  # offer_group(0, ...) in _tick
+                            groups=[(self.t_meas, self.t_zin, self.t_cmd)],  # offer_group(0, ...) in _tick
+                            live=live)
 
     def _take_sample(self, v: tuple) -> None:
         """v is the next sample stepped on: back to active from degraded, the samples skipped before it counted."""

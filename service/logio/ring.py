@@ -16,6 +16,7 @@ showed phantom backlogs and false drops.)
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing as mp
 import os
 import struct
@@ -47,16 +48,27 @@ def _group_fields(codecs: list[Codec]) -> str:
 IDLE_SLEEP_S = 0.005
 
 
+def _finite(msg: dict) -> bool:
+    """Whether every float of an event is finite (JSON text has no NaN or infinity)."""
+    return all(math.isfinite(v) for v in msg.values() if isinstance(v, float))
+
+
 class RingRecorder:
     """Same interface as service.logio.mcapfile.Recorder: offer(topic, t, values) and close()."""
 
     def __init__(self, path: str | Path, topics: dict[str, tuple[str, Codec | None]],
                  metadata: dict[str, dict[str, str]], slots: int = 1 << 17, chunk_size: int = 1 << 20,
                  rotate_bytes: int | None = None, rotate_s: float | None = None,
-                 writer_cpus: list[int] | None = None, groups: list[tuple[str, ...]] = ()):
+                 writer_cpus: list[int] | None = None, groups: list[tuple[str, ...]] = (),
+                 live: tuple[str, dict[str, str], float] | None = None):
         """groups: topics offered together every time (the daemon's meas, z_in and cmd each tick): offer_group
         packs one message of each into a single slot, with one call; the writer records them as separate
-        messages of their channels, in the group's order. A full ring drops the slot: one drop per topic."""
+        messages of their channels, in the group's order. A full ring drops the slot: one drop per topic.
+
+        live: (a Zenoh config as JSON5, {topic: Zenoh key}, min_interval_s): the writer process also puts those
+        topics' messages, as the JSON text it writes, on their keys, at most one per min_interval_s of sample time
+        per topic (events: every one) - a live view of what only the log had, at no cost to the recorded process
+        (RingWriter.tap)."""
         self.path = str(path)
         self.slots = slots
         self._shm = shared_memory.SharedMemory(create=True, size=_HDR.size + slots * SLOT)
@@ -92,7 +104,7 @@ class RingRecorder:
         self._proc = ctx.Process(target=_writer, name="energyctl-recorder", daemon=True,
                                  args=(self._shm.name, slots, self.path, spec, metadata, chunk_size,
                                        self._events, self._result, rotate_bytes, rotate_s, os.getpid(),
-                                       self._ready, writer_cpus, group_spec))
+                                       self._ready, writer_cpus, group_spec, live))
         self._proc.start()
         self._buf = self._shm.buf
         self._wi = array("q", [0])  # the write index: shared with a TickWriter's grouped slots (ring_args)
@@ -220,7 +232,7 @@ class RingWriter:
     member topic ids of each group slot (GROUP_BASE + g)."""
 
     def __init__(self, path: str, spec, metadata: dict, chunk_size: int, events, rotate_bytes=None, rotate_s=None,
-                 groups: list[tuple[int, ...]] = ()):
+                 groups: list[tuple[int, ...]] = (), live: tuple[str, dict[str, str], float] | None = None):
         import importlib
 
         from schemas.messages import Event
@@ -261,6 +273,9 @@ class RingWriter:
         self.part_bytes, self.part_t0 = 0, None
         self.f = None
         self.written = 0  # messages written (poll keeps it)
+        self.live = live
+        self.taps: dict[int, list] = {}  # topic id -> [publisher, sample time of its last put (s)] (open_live)
+        self._session = None
 
     def open_part(self, p: str, part: int):
         from service.logio.mcapfile import McapFile
@@ -278,6 +293,36 @@ class RingWriter:
     def open(self) -> None:
         """The first part (raises what the file system says: unwritable directory, disk full)."""
         self.f = self.open_part(self.path, 0)
+
+    def open_live(self) -> None:
+        """The live tap's session and publishers (``live``): dropped under congestion, at background priority, so
+        a reader that stops holds up nobody; a tap that cannot open leaves the log as it is."""
+        if self.live is None:
+            return
+        import zenoh
+
+        cfg, keys, self.live_every_s = self.live
+        try:
+            self._session = zenoh.open(zenoh.Config.from_json5(cfg))
+            for k, topic in enumerate(self.topics):
+                if topic in keys:
+                    pub = self._session.declare_publisher(keys[topic], congestion_control=zenoh.CongestionControl.DROP,
+                                                          priority=zenoh.Priority.BACKGROUND)
+                    self.taps[k] = [pub, -1e300]
+        except Exception:  # noqa: BLE001 - no live view; the log is what matters here
+            self.taps = {}
+
+    def tap(self, k: int, t: float, text) -> None:
+        """A message of topic k (JSON text) on its live key, if its last was min_interval_s of sample time ago (or
+        t went back: a restart); events (k the event topic) every one."""
+        tp = self.taps[k]
+        if self.topics[k] != self.ev_topic and 0 <= t - tp[1] < self.live_every_s:
+            return
+        tp[1] = t
+        try:
+            tp[0].put(text)
+        except Exception:  # noqa: BLE001 - the session closed under it: no more live view
+            self.taps.pop(k, None)
 
     def maybe_rotate(self, t: float) -> None:
         if self.part_t0 is None:
@@ -299,7 +344,10 @@ class RingWriter:
             self.f.metadata(*vals)
             return 0
         if self.ev_topic:
-            self.f.add(self.ev_topic, t, dict(zip(self.ev_fields, vals, strict=True)))
+            msg = dict(zip(self.ev_fields, vals, strict=True))
+            self.f.add(self.ev_topic, t, msg)
+            if self.taps and (k := self.topics.index(self.ev_topic)) in self.taps and _finite(msg):
+                self.tap(k, t, json.dumps(msg, default=str))
             return 1
         return 0
 
@@ -331,6 +379,8 @@ class RingWriter:
             self.f.add(self.topics[k], t, dict(zip(self.fields[k], raw, strict=True)))
         else:
             self.f.add_raw(self.topics[k], t, text.encode())
+            if k in self.taps:
+                self.tap(k, t, text)
 
     def poll(self, buf, slots: int, parent: int) -> int:
         """Take the ring's slots in order until stopped (or the recorded process is gone); returns the messages
@@ -376,11 +426,20 @@ class RingWriter:
         if self.index is not None:
             self.index.flush(self.f)
         self.f.close()
+        self.close_live()
+
+    def close_live(self) -> None:
+        s, self._session, self.taps = self._session, None, {}
+        if s is not None:
+            try:
+                s.close()
+            except Exception:  # noqa: BLE001 - a peer gone: nothing left to tell
+                pass
 
 
 def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, rotate_bytes=None,
             rotate_s=None, parent: int | None = None, ready=None, cpus: list[int] | None = None,
-            groups: list[tuple[int, ...]] = ()) -> None:
+            groups: list[tuple[int, ...]] = (), live=None) -> None:
     """The writer process's entry: below the recorded process in priority, off its CPU, its own output closed;
     a RingWriter drains the ring; ``result`` gets {"written", "error", "paths"} at the end."""
     from service.priority import RECORDER_NICE, background
@@ -401,7 +460,7 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
 
     shm = shared_memory.SharedMemory(name=shm_name)
     buf = shm.buf
-    w = RingWriter(path, spec, metadata, chunk_size, events, rotate_bytes, rotate_s, groups)
+    w = RingWriter(path, spec, metadata, chunk_size, events, rotate_bytes, rotate_s, groups, live)
     try:
         w.open()
     except Exception as e:  # noqa: BLE001 - unwritable directory, disk full: tell the parent, end
@@ -410,6 +469,7 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
         buf = None
         shm.close()
         return
+    w.open_live()
     if ready is not None:
         ready.set()
     # the recorded process, named by itself: reading getppid() here would be too late if it died while this
@@ -427,6 +487,7 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
                 w.close()
             else:
                 w.f.close()
+                w.close_live()
         except Exception as e:  # noqa: BLE001
             error = error or f"{type(e).__name__}: {e}"
         buf = None

@@ -133,14 +133,16 @@ def test_components_and_parameter_values():
 
 
 @contextmanager
-def daemon_stack(neighbours: list[str]):
-    """A daemon for component "source" in this process (clock trigger, 1 kHz, these neighbours, no log) on a free
-    loopback port, and a stand-in plant publishing measurements on energyctl/source/meas in bursts of BURST:
-    (daemon, endpoint, its loop thread). Stopping and closing the daemon earlier is allowed."""
+def daemon_stack(neighbours: list[str], **extra):
+    """A daemon for component "source" in this process (clock trigger, 1 kHz, these neighbours, no log unless
+    ``extra`` sets log_dir) on a free loopback port, and a stand-in plant publishing measurements on
+    energyctl/source/meas in bursts of BURST: (daemon, endpoint, its loop thread). Stopping and closing the daemon
+    earlier is allowed."""
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
     comp, _plant, _load = configs_from_scenario(scn, ep, lockstep=False, rate_hz=1000.0)
     comp["neighbours"] = neighbours
+    comp.update(extra)
     comp["loop"]["trigger"] = "clock"
     comp["forecast"] = {"enabled": False}
     for k in ("local_reference_W", "nice"):
@@ -612,3 +614,39 @@ def test_the_ws_protocol_client_connects_only_offering_the_sdk_subprotocol(stack
         assert all(m == expected_meas(m["seq"]) for m in new["messages"]), new["messages"]
     finally:
         bridge.close()
+
+
+def test_the_layouts_live_topics_est_z_in_and_events_are_served_from_a_logging_daemon(tmp_path):
+    """The layout's estimate, tick-input and event panels were empty live: the daemon recorded them but published
+    none. With log_live_hz its recorder's process puts them on PREFIX/ID/est, z_in and events (est and z_in at most
+    log_live_hz a second of sample time, events all), and the bridge serves them on the log's topics, as the log's
+    JSON."""
+    from schemas.messages import Estimate, Event, TickInput
+
+    with daemon_stack([], log_dir=str(tmp_path), log_live_hz=20.0) as (d, ep, _loop):
+        bridge = Bridge(ZenohConfig(mode="peer", connect=[ep]), ["source"], port=0, rate_hz=0.0)
+        client = None
+        try:
+            bridge.start()
+            client = FoxgloveClient(bridge.port)
+            leaves = ("est", "z_in", "events")
+            assert client.pump(lambda: {f"energyctl/source/{x}" for x in leaves} <= set(client.channels))
+            for leaf, model in zip(leaves, (Estimate, TickInput, Event), strict=True):
+                assert json.loads(client.channels[f"energyctl/source/{leaf}"]["schema"]) == json_schema(model)
+            client.send({"op": "subscribe", "subscriptions": [
+                {"id": k, "channelId": client.channels[f"energyctl/source/{leaf}"]["id"]}
+                for k, leaf in enumerate(leaves, 1)]})
+            assert client.pump(lambda: len(client.data.get(1, [])) >= 3 and len(client.data.get(2, [])) >= 3,
+                               20.0), {k: len(v) for k, v in client.data.items()}
+            assert set(client.data[1][-1]) == set(json_schema(Estimate)["properties"])
+            assert set(client.data[2][-1]) == set(json_schema(TickInput)["properties"])
+            ts = [m["t"] for m in client.data[2]]
+            assert all(b - a >= 1 / 20.0 - 1e-9 for a, b in zip(ts, ts[1:], strict=False))  # decimated, sample time
+            # an event: a config change made elsewhere is recorded, and so seen live
+            client.call("source/config/set", {"set": ["controller.K_per_s=900"]}, 1)
+            assert client.pump(lambda: any(e.get("kind") == "config" for e in client.data.get(3, [])), 20.0), \
+                client.data.get(3)
+        finally:
+            if client is not None:
+                client.close()
+            bridge.close()
