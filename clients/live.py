@@ -354,6 +354,17 @@ def port_open(endpoint: str) -> bool:
 COME_UP_S = 60.0
 
 
+def stop_process(p, grace_s: float = 10.0) -> None:
+    """End a process we started (subprocess.Popen): SIGTERM, then SIGKILL if it has not ended within grace_s."""
+    if p.poll() is None:
+        p.terminate()
+        try:
+            p.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
 def wait_until(pred, timeout_s: float, every_s: float = 0.02) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from clients.live import stop_process
+
 
 def _cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -37,15 +39,6 @@ def _start_router(paths: dict, audit: bool, err: Path) -> subprocess.Popen:
             raise RuntimeError(f"router did not start: {err.read_text()[-500:]}")
         time.sleep(0.02)
     return p
-
-
-def _stop(p: subprocess.Popen) -> None:
-    p.terminate()
-    try:
-        p.wait(10.0)
-    except subprocess.TimeoutExpired:
-        p.kill()
-        p.wait()
 
 
 def _run(paths: dict, ep: str, audit: bool, rate_hz: float, seconds: float, work: Path) -> dict:
@@ -82,7 +75,7 @@ def _run(paths: dict, ep: str, audit: bool, rate_hz: float, seconds: float, work
                 "router_cpu_s": round(cpu, 3), "router_cpu_pct": round(100 * cpu / wall, 1),
                 "router_us_per_delivered": round(1e6 * cpu / max(got[0], 1), 1)}
     finally:
-        _stop(p)
+        stop_process(p)
 
 
 def _refusals(paths: dict, ep: str, work: Path) -> dict:
@@ -114,7 +107,7 @@ def _refusals(paths: dict, ep: str, work: Path) -> dict:
                 return got
             time.sleep(0.05)
     finally:
-        _stop(p)
+        stop_process(p)
 
 
 def bench_router_audit(rate_hz: float = 10_000.0, seconds: float = 3.0, pairs: int = 2, progress=None) -> dict:

@@ -11,7 +11,7 @@ import sys
 
 from conftest import ROOT
 
-from clients.live import wait_until
+from clients.live import stop_process, wait_until
 from clients.query import query
 from clients.refusals import RefusalLog
 from clients.secure import client_zenoh, write_profile
@@ -95,10 +95,5 @@ def test_energyctl_router_logs_and_counts_refused_logins_and_denied_messages(tmp
         assert "refused a login: UsrPwd: Invalid password" in text
         assert "access control denied monitor: Query (ingress) on energyctl/source/config/set" in text
     finally:
-        p.terminate()
-        try:
-            p.wait(10.0)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
+        stop_process(p)
     assert "refused 1 login(s), denied 3 message(s)" in err.read_text()
