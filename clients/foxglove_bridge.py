@@ -51,7 +51,7 @@ from schemas.codec import CMD, EST, MEAS, TICK_IN, Codec, DecodeError, Z
 from schemas.component import ZenohConfig
 from schemas.messages import Event, json_schema
 from schemas.replies import REPLY_MODELS
-from service.daemon.bus import key, open_session
+from service.daemon.bus import close_session, key, open_session
 from service.daemon.failure import Failure, guarded
 
 # Zenoh leaf -> (the daemon's MCAP topic leaf, schema name, codec)
@@ -387,7 +387,7 @@ class Bridge(Served):
         for s in self.streams:
             s.channel.close()
         if self.session is not None:
-            self.session.close()
+            close_session(self.session)
             self.session = None
 
     def __enter__(self) -> Bridge:

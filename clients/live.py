@@ -29,18 +29,21 @@ def install_stop_handlers(stop: threading.Event) -> None:
     in C at the signal itself (service._stopsignal), not by the Python handler, which never runs in a process whose
     GIL is held by a deadlocked thread; without the compiled module, by the Python handler."""
 
-    def handler(signum, frame):  # noqa: ARG001
-        stop.set()
-        signal.alarm(SHUTDOWN_GRACE_S)
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
     try:
         from service._stopsignal import arm
     except ImportError:  # built without a C compiler
-        return
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        arm(sig, SHUTDOWN_GRACE_S)
+        arm = None
+
+    def handler(signum, frame):  # noqa: ARG001
+        stop.set()
+        if arm is None:  # armed in C otherwise, once: a later signal does not move the deadline
+            signal.alarm(SHUTDOWN_GRACE_S)
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    if arm is not None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            arm(sig, SHUTDOWN_GRACE_S)
 
 
 def start_process(cfg, command: str) -> threading.Event:

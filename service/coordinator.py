@@ -45,7 +45,7 @@ from schemas.netlive import CoordinatorConfig
 from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
 from service.core.feasibility import incoming_range
-from service.daemon.bus import answer, key, open_session, publisher, queued, request, serve_queries
+from service.daemon.bus import answer, close_session, key, open_session, publisher, queued, request, serve_queries
 from service.daemon.failure import Failure, guarded
 from service.layer import InterconnectionLayer, judge_announced, offer_staleness
 from service.plant.network import NetworkPlant
@@ -173,7 +173,7 @@ class Coordinator:
                     self.token.undeclare()
             except Exception:  # noqa: BLE001 - closing anyway
                 pass
-            self.session.close()
+            close_session(self.session)
             for t in self._threads:
                 t.join(timeout=0.5)
             self.session = None

@@ -66,6 +66,12 @@ class SourceController:
         self._since_fallback = self.resume_steps  # steps since the last fallback ended (>= N: no ramp)
         self.switches = 0  # entries into and exits from idle
 
+    def reset_fallback(self) -> None:
+        """Forget the allocation it would keep: a new run (the rig restarted) allocates afresh, and the previous
+        run's share is not this one's."""
+        self._P_last, self._P_gap, self._was_fresh = None, 0.0, True
+        self._since_fallback = self.resume_steps
+
     @property
     def v_ref_V(self) -> float:
         return self.core.cfg.v_ref_V

@@ -34,7 +34,7 @@ from service.core import core_metadata, effective_gain, make_core
 from service.core.control import recovery_rate
 from service.core.feasibility import FeasibilityMonitor, incoming_range, tau_prime
 from service.core.interaction import outgoing_power_at as _outgoing_power_at
-from service.daemon.bus import key, latest, open_session, publisher, queued, serve_queries, zenoh_config
+from service.daemon.bus import close_session, key, latest, open_session, publisher, queued, serve_queries, zenoh_config
 from service.daemon.failure import Failure
 from service.daemon.forecast_worker import ForecastWorker
 from service.daemon.loop_stats import HIST, LoopStats
@@ -269,7 +269,7 @@ class Daemon(DaemonQueries):
                     self.token.undeclare()
             except Exception:  # noqa: BLE001 - closing anyway
                 pass
-            self.session.close()  # also ends the query threads' blocking recv()
+            close_session(self.session)  # also ends the query threads' blocking recv(); a timeout is not raised
             for t in self._threads:
                 t.join(timeout=0.5)
             self.session = None
@@ -549,7 +549,8 @@ class Daemon(DaemonQueries):
         period it predicts the plan sent with the previous answer: one period of model error, against bit-exact
         replay.
 
-        ``recover`` (v out of range): once no sample was stepped on for the stale time, the answer is the recovery
+        ``recover`` (v out of range, the rest in range, the daemon active or degraded: _recoverable): once no sample
+        was stepped on for the stale time, the answer is the recovery
         command instead (service.core.control.recovery_rate: u toward v_ref at v_ref / recovery_ramp_s), so a bus
         left out of range (0 V after a stall, a discharged start) is brought back into range and then regulated
         (its first sample in range a resync or the first sample); a glitch shorter than the stale time is held."""
@@ -608,6 +609,14 @@ class Daemon(DaemonQueries):
             return "meas.u: out of range", f"{v[4]:g} V beyond ±{self._u_max:g} V"
         return None
 
+    def _recoverable(self, v: tuple) -> bool:
+        """Whether a sample held for its v may be answered by the recovery command: the daemon controls (active or
+        degraded, not inactive) and the values the command reads or that say the plant is sane (u, i, i_load) are
+        in their ranges."""
+        c = self.cfg
+        return (self.state in ("active", "degraded") and abs(v[4]) <= self._u_max and abs(v[2]) <= c.meas_i_max_A
+                and abs(v[5]) <= c.meas_i_max_A)
+
     def _follows(self, seq: int, t: float, v: tuple) -> bool:
         """Whether v is on the clock of a sample (seq, t): at most _max_gap samples after it, its t within _clock_tol
         of t + gap x period (the plant's clock; docs/protocol.md)."""
@@ -656,7 +665,7 @@ class Daemon(DaemonQueries):
             return None
         bad = self._out_of_range(v)
         if bad is not None:
-            return self._hold(v, now, *bad, recover=bad[0] == "meas.v: out of range")
+            return self._hold(v, now, *bad, recover=bad[0] == "meas.v: out of range" and self._recoverable(v))
         if restart:  # the plant restarted: its history is not ours any more
             self.core.reset()
             self._last_seq = -1

@@ -155,6 +155,7 @@ class NetworkSourceDaemon(Daemon):
         self._range = None
         self._seen_restarts = self.restarts
         self._first_alloc = True
+        self.ctl.reset_fallback()  # the previous run's kept share is not this run's
         if self._auto_connect:  # a new run: its start decides again
             self._connect_seq, self._auto_connect = None, False
 

@@ -469,9 +469,9 @@ def _writer(shm_name, slots, path, spec, metadata, chunk_size, events, result, r
         buf = None
         shm.close()
         return
-    w.open_live()
     if ready is not None:
         ready.set()
+    w.open_live()  # after ready: a slow Zenoh open does not count against the recorder's start
     # the recorded process, named by itself: reading getppid() here would be too late if it died while this
     # process was still importing (then the orphan never noticed, and idled forever)
     parent = parent or os.getppid()

@@ -84,3 +84,18 @@ def test_without_the_recovery_command_such_a_bus_stays_held_at_zero(nested_daemo
     d.cfg = d.cfg.model_copy(update={"recovery_ramp_s": None})
     vs, dus = run_from(d, v0=0.2, u0=0.0, seconds=0.2)
     assert all(du == 0.0 for du in dus) and max(vs) < d.cfg.meas_v_min_V and d.recovery_ticks == 0
+
+
+def test_no_recovery_command_while_inactive_or_with_an_implausible_u(nested_daemon):
+    """The recovery command moves the actuator: not while the operator has the daemon inactive, and not on a u it
+    cannot trust (beyond meas_u_max_V): both held at du/dt = 0."""
+    d = nested_daemon
+    d.state = "inactive"
+    _vs, dus = run_from(d, v0=0.2, u0=0.0, seconds=0.1)
+    assert all(du == 0.0 for du in dus) and d.recovery_ticks == 0
+    d.state = "active"
+    later = int(1.0e9)  # well past the stale time
+    d._tick(MEAS.encode(10_000, 1.0, 0.0, 0.2, 2 * d.cfg.meas_u_max_V, 0.0), later)
+    assert d.last_cmd[2] == 0.0 and d.recovery_ticks == 0
+    d._tick(MEAS.encode(10_001, 1.0 + T, 0.0, 0.2, 0.0, 0.0), later + int(T * 1e9))
+    assert d.last_cmd[2] > 0.0 and d.recovery_ticks == 1  # the same sample with a plausible u: recovered

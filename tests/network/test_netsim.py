@@ -412,3 +412,20 @@ def test_without_the_coordinator_the_sources_keep_their_last_shares():
     # own-terminal law, and does not idle (that floor is the paper law's hazard, not the kept share's)
     r = _run("realtime", "links.*.silent_from_s=4.02", "timing.duration_s=5")
     assert r.metrics["sources"]["S3"]["final_mode"] == "fallback", r.metrics["sources"]["S3"]
+
+
+def test_a_new_run_does_not_keep_the_previous_runs_share():
+    """A source keeping its last allocation (nested law, coordinator silent) takes what it was last asked for; once
+    the rig restarts (reset_fallback) and this run's allocation has not come yet, the previous run's share is not
+    kept: it follows its own terminal (P^{r,in} = -v i_out)."""
+    from service.core.types import Sample
+
+    ctl = SourceController(make_core(ControllerConfig(kind="nested"), CircuitParams(), 1e-4, 2), 1e-4,
+                           idle_power_W=0.0, fallback="last-allocation")
+    s = Sample(seq=0, t=0.0, i=10.0, v=80.0, u=80.1, i_load=10.0)  # 800 W at its terminal
+    ctl.step(s, -1500.0, 0.0, True, True)  # asked for 1.5 kW
+    ctl.step(Sample(1, 1e-4, 10.0, 80.0, 80.1, 10.0), 0.0, 0.0, True, False)  # silent: the kept share
+    assert ctl.P_in_used == pytest.approx(-1500.0)
+    ctl.reset_fallback()
+    ctl.step(Sample(2, 2e-4, 10.0, 80.0, 80.1, 10.0), 0.0, 0.0, True, False)
+    assert ctl.P_in_used == pytest.approx(-800.0)
