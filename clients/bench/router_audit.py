@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from clients.live import stop_process
+from clients.live import COME_UP_S, stop_process
 
 
 def _cpu_s(pid: int) -> float:
@@ -30,12 +30,13 @@ def _cpu_s(pid: int) -> float:
 def _start_router(paths: dict, audit: bool, err: Path) -> subprocess.Popen:
     env = {k: v for k, v in os.environ.items() if k != "RUST_LOG"}
     cmd = [sys.executable, "-m", "clients.cli", "router", "--config", str(paths["router"])]
-    p = subprocess.Popen(cmd + ([] if audit else ["--no-audit"]), stdout=subprocess.DEVNULL, stderr=err.open("w"),
-                         env=env, start_new_session=True)
-    deadline = time.monotonic() + 30.0
+    with err.open("w") as f:  # the child keeps its own copy of the descriptor
+        p = subprocess.Popen(cmd + ([] if audit else ["--no-audit"]), stdout=subprocess.DEVNULL, stderr=f, env=env,
+                             start_new_session=True)
+    deadline = time.monotonic() + COME_UP_S
     while "listening" not in err.read_text():
         if p.poll() is not None or time.monotonic() > deadline:
-            p.kill()
+            stop_process(p, 0.0)
             raise RuntimeError(f"router did not start: {err.read_text()[-500:]}")
         time.sleep(0.02)
     return p
