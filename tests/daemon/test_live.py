@@ -188,18 +188,25 @@ def plant_side(d: Daemon):
     return got, sub, d.session.declare_publisher("energyctl/source/meas")
 
 
+def lockstep_daemon(catch_up: int) -> Daemon:
+    """An opened lockstep daemon of the paper's stack at 10 kHz (loopback, no forecast worker, a 1 s lockstep wait)
+    answering the newest ``catch_up`` queued samples; its loop is driven by the test."""
+    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
+    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=True, rate_hz=10000.0)
+    comp["loop"].update(catch_up=catch_up, lockstep_timeout_s=1.0)
+    comp["forecast"] = {"enabled": False}
+    d = Daemon(config_from_dict(ComponentConfig, comp))
+    d.open()
+    return d
+
+
 def test_a_lockstep_loop_waits_for_its_neighbours_only_on_a_sample_it_steps_on():
     """Lockstep waited for the neighbours' messages of the seq read off any payload before checking it: a bit flip in
     a frame's magic, a truncated frame, a seq beyond 2^53, a NaN, a v out of range (held) with a seq far ahead held
     the loop for the whole lockstep_timeout_s and marked every neighbour lagging. Now the sample is checked first and
     only one the core steps on is waited for; the others are rejected (or held: answered with du/dt = 0) at once,
     and the next sample is answered with the neighbours still followed."""
-    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
-    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=True, rate_hz=10000.0)
-    comp["loop"].update(catch_up=8, lockstep_timeout_s=1.0)
-    comp["forecast"] = {"enabled": False}
-    d = Daemon(config_from_dict(ComponentConfig, comp))
-    d.open()
+    d = lockstep_daemon(catch_up=8)
     try:
         nb = d.neighbours[0]
         nb.seq, nb.count, nb.P, nb.rx_ns, nb.alive = 1, 1, 1200.0, time.monotonic_ns(), True  # its z for sample 1
@@ -227,12 +234,7 @@ def test_frames_the_lockstep_loop_passes_over_are_counted():
     """With loop.catch_up = 1 the loop answers the newest queued frame; the ones it passed over (queued while it
     waited or stalled) were dropped without a count. Now each is counted in status loop.meas_skipped (frames that can
     never be the next sample are refused before they are queued, and counted there), and none stalls the loop."""
-    scn = load_scenario(SCENARIOS / "paper-constant-load.toml")
-    comp, _p, _l = configs_from_scenario(scn, f"tcp/127.0.0.1:{free_tcp_port()}", lockstep=True, rate_hz=10000.0)
-    comp["loop"].update(catch_up=1, lockstep_timeout_s=1.0)
-    comp["forecast"] = {"enabled": False}
-    d = Daemon(config_from_dict(ComponentConfig, comp))
-    d.open()
+    d = lockstep_daemon(catch_up=1)
     try:
         nb = d.neighbours[0]
         nb.seq, nb.count, nb.P, nb.rx_ns, nb.alive = 4, 1, 1200.0, time.monotonic_ns(), True  # its z up to sample 4
