@@ -106,7 +106,7 @@ def net_worker(job: tuple[str, list[str]]) -> dict:
     """One network case: diverged, the slowest bus back in band after the step (s; None: never), the largest bus
     deviation over the last TAIL_S (%), the worst sharing error (pp)."""
     from schemas.network import load_network
-    from service.netsim import run_network
+    from service.network.netsim import run_network
 
     path, ovs = job
     net = load_network(path, ovs)

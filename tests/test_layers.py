@@ -29,19 +29,16 @@ SERVICE_LAYERS = {
     "service.plant": ("service.core.types", "service.plant", "service._kernel"),
     "service.forecast": ("service.core", "service.plant"),
     "service.sim": ("service.core", "service.plant", "service.forecast"),
-    "service.layer": ("service.core", "service.plant", "service.forecast"),
-    "service.netrig": ("service.core", "service.plant", "service.sim"),
-    "service.netsim": ("service.core", "service.plant", "service.forecast", "service.sim", "service.layer",
-                       "service.netrig"),
-    "service.coordinator": ("service",),
-    "service.layer_replay": ("service.layer", "service.logio", "service.plant"),
+    # the network wing: the pure layer, the offline network, the rig's model; its replay reads a log besides
+    "service.network.layer_replay": ("service.network.layer", "service.logio", "service.plant"),
+    "service.network": ("service.core", "service.plant", "service.forecast", "service.sim", "service.network"),
+    "service.daemon.coordinator": ("service",),
     "service.priority": (),
     "service.logio": ("service.logio", "service.core", "service.priority", "service"),
     "service.replay": ("service.core", "service.logio"),
     "service.daemon": ("service",),
 }
-PURE = ("service.core", "service.plant", "service.forecast", "service.sim", "service.netsim", "service.layer",
-        "service.netrig")
+PURE = ("service.core", "service.plant", "service.forecast", "service.sim", "service.network")
 IMPURE_MODULES = ("time", "datetime", "threading", "_thread", "concurrent", "asyncio", "socket", "ssl", "selectors",
                   "subprocess", "multiprocessing", "signal", "os", "ctypes", "zenoh", "mcap", "random", "secrets")
 

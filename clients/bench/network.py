@@ -48,7 +48,7 @@ def bench_network(sizes: tuple[int, ...] = (2, 4, 8, 16), seconds: float = 0.2, 
     """Best wall time of ``repeat`` offline runs of ``seconds`` of radial(n) for each n: the cost per source per
     control tick (us), which should stay flat as n grows (linear cost), and the real-time ratio."""
     from schemas.network import network_from_dict
-    from service.netsim import run_network
+    from service.network.netsim import run_network
 
     rows = {}
     for n in sizes:

@@ -17,7 +17,7 @@ import numpy as np
 
 from clients.netlive import LiveNetwork
 from clients.peers.netrig import read_rig_log
-from service.netsim import _back_in_band, acceptance_checks
+from service.network.netsim import _back_in_band, acceptance_checks
 from service.sim import BAND_SETTLE
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -196,7 +196,7 @@ def rate_run(work: Path, rate_hz: float, seconds: float) -> dict:
     cpu["rig"] = res["cpu"]["rig_pct"]
     checks = acceptance_checks(rig)
     from schemas.network import load_network
-    from service.netsim import run_network
+    from service.network.netsim import run_network
 
     offline = acceptance_checks(run_network(load_network(scen, sets)))  # the same rate and settings, offline
     c = res["counters"]

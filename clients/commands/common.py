@@ -50,7 +50,7 @@ def run_one(path: str, overrides: list[str]) -> dict:
     """The metrics of one offline closed-loop run (a network scenario's summarised: network_summary)."""
     if is_network_file(path):
         from schemas.network import load_network
-        from service.netsim import run_network
+        from service.network.netsim import run_network
 
         return network_summary(run_network(load_network(path, overrides)).metrics)
     from service.sim import run

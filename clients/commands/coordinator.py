@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from clients.options import zenoh_from_args
     from schemas.netlive import CoordinatorConfig
     from schemas.network import load_network
-    from service.coordinator import run_coordinator
+    from service.daemon.coordinator import run_coordinator
 
     net = load_network(args.network, args.set)
     cfg = CoordinatorConfig(id=args.id, rig=args.rig, prefix=args.prefix, zenoh=zenoh_from_args(args),

@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
     if (args.set or args.controller) and not args.out:
         raise ScenarioError("replay: a what-if (--set/--controller) needs --out NEW.mcap")
-    from service.layer_replay import is_coordinator_log
+    from service.network.layer_replay import is_coordinator_log
 
     try:
         if len(args.log) == 1 and is_coordinator_log(args.log[0]):
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
 def replay_layer(args: argparse.Namespace) -> int:
     """A coordinator's log: its allocations and plug-in verdicts recomputed by the layer."""
-    from service.layer_replay import replay_coordinator
+    from service.network.layer_replay import replay_coordinator
 
     res = replay_coordinator(args.log[0], args.core)
     if args.json:

@@ -92,7 +92,7 @@ def run_network_scenario(args: argparse.Namespace) -> int:
     """sim on a network scenario (kind = "network"): every source's controller, the layer, the events."""
     from schemas.network import load_network
     from schemas.scenario import ScenarioError
-    from service.netsim import run_network
+    from service.network.netsim import run_network
 
     if args.controller:
         raise ScenarioError("--controller: a network has a controller per source; use --set "

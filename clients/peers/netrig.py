@@ -1,6 +1,6 @@
 """Hardware-in-the-loop stand-in of a whole network (energyctl plant --config NETWORK.toml).
 
-The plant side of the offline network (service.netrig.NetworkRigModel: the network plant, each source's sensor,
+The plant side of the offline network (service.network.netrig.NetworkRigModel: the network plant, each source's sensor,
 loop delay and command schedule, the scenario's breaker events, the layer's bus measurements) behind Zenoh. Per
 sample k it publishes, in this order, each line end's interaction variable (PREFIX/LINE/z/NODE), each load's
 (PREFIX/LOAD/z), the layer's grid sample (PREFIX/RIG/grid) and each source's measurement (PREFIX/SOURCE/meas); it
@@ -45,8 +45,8 @@ from schemas.netlive import NetworkRigConfig
 from schemas.network import NetworkScenario
 from service.daemon.bus import close_session, key, open_session, publisher, queued
 from service.daemon.failure import Failure, guarded
-from service.netrig import NetworkRigModel
-from service.netsim import Event, NetworkResult, acceptance_checks, network_metrics
+from service.network.netrig import NetworkRigModel
+from service.network.netsim import Event, NetworkResult, acceptance_checks, network_metrics
 
 CUT_WINDOW_S = 2.0  # sources whose tokens went this long before the rig found itself cut off went with the cut
 

@@ -19,8 +19,9 @@ What differs from a single component's daemon (service.daemon.daemon):
   inside the tick before its answer goes out (the rig waits for that answer, so the breaker closes at the next
   sample, as offline); in realtime a thread makes it and the loop goes on.
 
-The same inputs give the same commands as the offline network (service.netsim), so a lockstep run over Zenoh equals
-the offline run to the bit, and its log replays identical (idle periods as held rows, v_ref moves as events).
+The same inputs give the same commands as the offline network (service.network.netsim), so a lockstep run over
+Zenoh equals the offline run to the bit, and its log replays identical (idle periods as held rows, v_ref moves as
+events).
 """
 
 from __future__ import annotations

@@ -114,7 +114,7 @@ def write_trace_mcap(path: str | Path, tr: dict, metadata: dict[str, dict[str, s
 
 
 def write_network_mcap(path: str | Path, res, prefix: str | None = None) -> Path:
-    """A network run (service.netsim.NetworkResult) as one MCAP: each source's channels under its own prefix,
+    """A network run (service.network.netsim.NetworkResult) as one MCAP: each source's channels under its own prefix,
     <prefix>/<source>/meas, /z_in, /cmd, /events (the layer's v_ref moves, which replay applies also in a
     what-if, and its Z^{r,in} for each window the source was connected in) and /plant (its true state,
     P_l the power its lines draw), each bus's under <prefix>/<bus>/plant, and the layer's events (breakers,

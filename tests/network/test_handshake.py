@@ -11,10 +11,10 @@ from conftest import SCENARIOS, QueryStub
 
 from schemas.netlive import CoordinatorConfig
 from schemas.network import load_network
-from service import coordinator as coordinator_module
-from service.coordinator import Coordinator
+from service.daemon import coordinator as coordinator_module
+from service.daemon.coordinator import Coordinator
 from service.forecast import forecast_outgoing
-from service.layer import MAX_OFFER_AGE_WINDOWS
+from service.network.layer import MAX_OFFER_AGE_WINDOWS
 
 
 @pytest.fixture
@@ -106,7 +106,7 @@ def test_a_request_without_a_forecast_of_its_own_is_refused_by_name_without_runn
 def test_the_log_replays_each_offer_and_each_verdict_stale_ones_included(co, monkeypatch):
     """The coordinator's offer and connect events, fed to the replay's Handshakes with the same layer, give every
     offer bit for bit and every verdict's reason: accepted, an offer too old, breakers changed, no offer."""
-    from service.layer_replay import Handshakes
+    from service.network.layer_replay import Handshakes
 
     events: list[tuple[int, str, dict]] = []
     monkeypatch.setattr(co, "_event", lambda t, seq, kind, d: events.append((seq, kind, json.loads(json.dumps(d)))))

@@ -14,8 +14,8 @@ from clients.peers.netrig import NetworkRig
 from schemas.codec import GRID
 from schemas.netlive import CoordinatorConfig, NetworkRigConfig
 from schemas.network import load_network
-from service import coordinator as coordinator_module
-from service.coordinator import Coordinator
+from service.daemon import coordinator as coordinator_module
+from service.daemon.coordinator import Coordinator
 
 NET = SCENARIOS / "network" / "realtime.toml"
 

@@ -18,7 +18,7 @@ from clients.netlive import LiveNetwork
 from clients.peers.netrig import read_rig_log
 from schemas.network import load_network
 from service.logio.reader import messages
-from service.netsim import acceptance_checks, run_network
+from service.network.netsim import acceptance_checks, run_network
 from tests.conftest import ROOT, SCENARIOS
 
 DEMO = ROOT / "clients" / "embedded" / "network-demo.toml"
@@ -63,7 +63,7 @@ def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
         live_ev = sorted((round(e.t, 6), e.kind, e.target) for e in rig.events)
         assert live_ev == sorted((round(e.t, 6), e.kind, e.target) for e in off.events)
         # each daemon's log replays identical; the coordinator's its allocations and its verdict
-        from service.layer_replay import replay_coordinator
+        from service.network.layer_replay import replay_coordinator
         from service.replay import replay
 
         for s in net.sources:

@@ -1,4 +1,4 @@
-"""Networks of controllable sources offline (service/netsim.py): the shipped scenarios reach their figures, the
+"""Networks of controllable sources offline (service/network/netsim.py): the shipped scenarios reach their figures, the
 design notes' hazards are handled (and fail on the naive choice), and a run is deterministic."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from schemas.network import load_network
 from schemas.scenario import CircuitParams, ControllerConfig, PlantConfig, SensorConfig
 from service.core import make_core
 from service.core.source import SourceController
-from service.netsim import run_network
+from service.network.netsim import run_network
 from service.plant.rlc import RLCPlant, Sensor
 
 NET = SCENARIOS / "network"
@@ -206,7 +206,7 @@ def test_the_realtime_network_rides_through_late_lost_and_stalled_commands(distu
 
 def test_the_network_rig_model_applies_the_command_disturbances_per_source():
     """Each source's commands get their own seeded draws (S1's losses are not S2's), the same in every run."""
-    from service.netrig import NetworkRigModel
+    from service.network.netrig import NetworkRigModel
 
     net = load_network(NET / "realtime.toml", ["timing.command_loss=0.5"])
     a, b = NetworkRigModel(net), NetworkRigModel(net)
@@ -342,7 +342,7 @@ def test_light_load_in_the_ring_breaks_the_mapping_that_divides_by_i():
 
 
 def test_a_source_s_own_link_entry_adds_to_the_common_one():
-    from service.netsim import link_of
+    from service.network.netsim import link_of
 
     net = load_network(NET / "two-source.toml", ["links.*.delay_s=0.005", "links.S2.loss=0.1"])
     assert (link_of(net, "S1").delay_s, link_of(net, "S1").loss) == (0.005, 0.0)
@@ -379,7 +379,7 @@ def test_a_bus_no_source_reaches_is_a_blackout_not_a_divergence():
 def test_a_trace_without_the_controllers_reports_feasibility_violations_as_unknown():
     """A live rig's trace (no controllers: the daemons' monitors count excursions) reported 0 feasibility violations
     per source, a count it cannot know; now null (the offline run, which has them, still counts)."""
-    from service.netsim import network_metrics
+    from service.network.netsim import network_metrics
 
     net = load_network(SCENARIOS / "network" / "two-source.toml", ["timing.duration_s=0.05", "events=[]"])
     res = run_network(net)

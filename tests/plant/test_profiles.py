@@ -158,7 +158,7 @@ NET = {"kind": "network", "sources": {"S1": {}}, "buses": {"bus": {"C_F": 4.7e-3
 
 
 def test_a_network_load_follows_the_same_profile_and_its_switching_is_an_event():
-    from service.netsim import run_network
+    from service.network.netsim import run_network
 
     net = network_from_dict(NET)
     plant = NetworkPlant(net)

@@ -2,7 +2,7 @@
 
 Its loop thread takes the rig's grid sample (PREFIX/RIG/grid: each source's measured v and i_out, its breaker, the
 buses' measured voltages, the loads' powers) and drives the same pure layer as the offline run
-(service.layer.InterconnectionLayer): each sample it publishes every source's allocation on PREFIX/SOURCE/alloc
+(service.network.layer.InterconnectionLayer): each sample it publishes every source's allocation on PREFIX/SOURCE/alloc
 (P^{r,in} and its rate, the v_ref it last moved, the breaker, Z^{r,in} for the window); once per window it moves
 v_ref and sets the next window's ranges.
 
@@ -47,7 +47,7 @@ from schemas.scenario import ControllerConfig
 from service.core.feasibility import incoming_range
 from service.daemon.bus import answer, close_session, key, open_session, publisher, queued, request, serve_queries
 from service.daemon.failure import Failure, guarded
-from service.layer import InterconnectionLayer, judge_announced, offer_staleness
+from service.network.layer import InterconnectionLayer, judge_announced, offer_staleness
 from service.plant.network import NetworkPlant
 
 MAX_REQUEST_BYTES = 64 * 1024  # a connect request larger than this is refused unread

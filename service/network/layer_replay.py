@@ -9,8 +9,8 @@ from pathlib import Path
 
 from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
-from service.layer import STALE_OFFER, InterconnectionLayer, judge_announced, offer_staleness
 from service.logio.reader import LogError, messages, scan
+from service.network.layer import STALE_OFFER, InterconnectionLayer, judge_announced, offer_staleness
 from service.plant.network import NetworkPlant
 
 

@@ -34,8 +34,8 @@ from service.core import core_metadata, make_core
 from service.core.feasibility import FeasibilityMonitor
 from service.core.interaction import outgoing_power_at
 from service.core.source import ACTIVE, FALLBACK, IDLE, MODES, SourceController
-from service.layer import InterconnectionLayer, link_of
-from service.netrig import NetworkRigModel
+from service.network.layer import InterconnectionLayer, link_of
+from service.network.netrig import NetworkRigModel
 from service.sim import band_must_hold, check_trace_size, hold_metrics, settle_time, verdict
 
 STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal

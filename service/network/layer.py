@@ -1,9 +1,9 @@
 """The interconnection layer of a DC network: what each source is to deliver, its per-window v_ref correction, its
 feasibility range, and the plug-in check. Pure: no clocks, no I/O.
 
-The offline network (``service.netsim``) and the live coordinator (``service.coordinator``) drive this one class
-with the same inputs, so a lockstep run over Zenoh reproduces the offline run to the bit. Each control period the
-caller hands it the measured power each source's lines draw (P_s = v_s i_out_s, W) and which sources are
+The offline network (``service.network.netsim``) and the live coordinator (``service.daemon.coordinator``) drive
+this one class with the same inputs, so a lockstep run over Zenoh reproduces the offline run to the bit. Each control
+period the caller hands it the measured power each source's lines draw (P_s = v_s i_out_s, W) and which sources are
 connected; it answers with P^{r,in}_s (W, negative when the source delivers) and its filtered rate:
 
 * ``layer.mode = "none"``: P^{r,in}_s = -P_s, the source's own lines (each regulates its own terminal);

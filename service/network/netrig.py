@@ -1,7 +1,7 @@
 """The plant side of a network's closed loop: the network plant, each source's sensor, loop delay and command
 schedule, the scenario's breaker events and the layer's bus measurements. Pure: no clocks, no I/O.
 
-The offline network (``service.netsim``) and the hardware-in-the-loop network rig (``energyctl plant --config
+The offline network (``service.network.netsim``) and the hardware-in-the-loop network rig (``energyctl plant --config
 NETWORK``) drive this one class, so that both sample, delay and apply commands the same way to the bit. Per tick k:
 ``begin(k)`` applies the breaker events due (``trip``/``close``; a ``connect`` event is the layer's to answer and is
 handed back), ``sample(k)`` measures every source, ``bus_measurements()`` and ``load_powers()`` give what the layer
