@@ -32,11 +32,14 @@ SERVICE_LAYERS = {
     # the network wing: the pure layer, the offline network, the rig's model; its replay reads a log besides
     "service.network.layer_replay": ("service.network.layer", "service.logio", "service.plant"),
     "service.network": ("service.core", "service.plant", "service.forecast", "service.sim", "service.network"),
-    "service.daemon.coordinator": ("service",),
     "service.priority": (),
-    "service.logio": ("service.logio", "service.core", "service.priority", "service"),
+    # the recorder and reader: what a log holds (the core's records), the recorder process's priority
+    "service.logio": ("service.logio", "service.core", "service.priority"),
     "service.replay": ("service.core", "service.logio"),
-    "service.daemon": ("service",),
+    # the runtime services (daemon, coordinator): the pure parts they drive, the logs, the process's priority; never
+    # the offline drivers (service.sim, service.replay)
+    "service.daemon": ("service.daemon", "service.core", "service.forecast", "service.logio", "service.network",
+                       "service.plant", "service.priority", "service._kernel"),
 }
 PURE = ("service.core", "service.plant", "service.forecast", "service.sim", "service.network")
 IMPURE_MODULES = ("time", "datetime", "threading", "_thread", "concurrent", "asyncio", "socket", "ssl", "selectors",
@@ -172,6 +175,10 @@ def _tree(tmp_path: Path, files: dict[str, str]) -> Path:
     ({"service/plant/p.py": "def f():\n    import os\n    return os.environ\n"}, "pure service.plant.p imports os"),
     ({"service/core/law.py": "import zenoh\n"}, "pure service.core.law imports zenoh"),
     ({"service/core/law.py": "from service.daemon import bus\n"}, "service.core imports service.daemon"),
+    ({"service/logio/w.py": "from service.daemon import bus\n"}, "service.logio imports service.daemon"),
+    ({"service/daemon/d.py": "from service import sim\n", "service/sim.py": ""}, "service.daemon imports service.sim"),
+    ({"service/network/layer.py": "from service.daemon import bus\n"}, "service.network imports service.daemon"),
+    ({"service/network/layer.py": "import zenoh\n"}, "pure service.network.layer imports zenoh"),
     ({"service/core/a.py": "from . import b\n", "service/core/b.py": "from service.core import a\n"},
      "import cycle: service.core.a -> service.core.b -> service.core.a"),
 ])
