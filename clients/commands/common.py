@@ -12,6 +12,8 @@ from schemas.scenario import ScenarioError, load_scenario
 
 EMBEDDED = Path(__file__).parent.parent / "embedded"
 DEMO_SCENARIO = EMBEDDED / "demo.toml"
+# the scenarios shipped in the repository (the sweeps' defaults name them from here, whatever the working directory)
+SHIPPED = Path(__file__).resolve().parents[2] / "scenarios"
 CONTROLLERS = ("nested", "fblc", "smc", "lqr", "bm", "pi", "fixed")
 
 

@@ -9,7 +9,7 @@ import os
 import sys
 import time
 
-from clients.commands.common import ACCEPTANCE_HELP, failure_lines, kinds, load, parallel
+from clients.commands.common import ACCEPTANCE_HELP, SHIPPED, failure_lines, kinds, load, parallel
 from clients.envelope import CONTROLLERS as ENVELOPE_CONTROLLERS
 from clients.options import add_scenario_set
 from clients.table import metrics_table, render
@@ -149,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         return run_envelope(args)
     if len(args.scenario) > 1:
         raise ScenarioError("sweep: one base scenario (several only with --preset network)")
-    args.scenario = args.scenario[0] if args.scenario else "scenarios/paper-constant-load.toml"
+    args.scenario = args.scenario[0] if args.scenario else str(SHIPPED / "paper-constant-load.toml")
     grid = grid_from_args(args)
     controllers = kinds(args.controllers or "nested")
     keys = list(grid)
@@ -191,7 +191,7 @@ def run_network_sweep(args: argparse.Namespace) -> int:
     grid = grid_from_args(args)
     keys = list(grid)
     combos = list(itertools.product(*(grid[k] for k in keys)))
-    paths = args.scenario or [f"scenarios/network/{n}.toml" for n in NETWORK_SCENARIOS]
+    paths = args.scenario or [str(SHIPPED / "network" / f"{n}.toml") for n in NETWORK_SCENARIOS]
     jobs, labels = [], []
     for path in paths:
         for combo in combos:
@@ -237,11 +237,11 @@ def run_envelope(args: argparse.Namespace) -> int:
 
     if args.grid:
         raise ScenarioError("sweep --preset envelope: its grid is fixed (no --grid); --set changes the base scenario")
-    base = args.scenario[0] if args.scenario else "scenarios/paper-varying-load.toml"
+    base = args.scenario[0] if args.scenario else str(SHIPPED / "paper-varying-load.toml")
     if len(args.scenario) > 1:
         raise ScenarioError("sweep --preset envelope: one base scenario")
     controllers = kinds(args.controllers or ENVELOPE_CONTROLLERS)
-    nets = [f"scenarios/network/{n}.toml" for n in envelope.NET_SCENARIOS]
+    nets = [str(SHIPPED / "network" / f"{n}.toml") for n in envelope.NET_SCENARIOS]
     sj, sl, nj, nl = envelope.jobs(base, controllers, nets, list(args.set or []))
     sys.stderr.write(f"sweep: envelope, {len(sj)} single-source runs ({len(controllers)} controllers) and "
                      f"{len(nj)} network runs on {args.jobs or os.cpu_count()} processes\n")

@@ -59,6 +59,14 @@ def test_sweep_runs_a_grid_on_several_processes(capsys, tmp_path):
     assert len(csv.read_text().splitlines()) == 5
 
 
+def test_sweep_finds_its_default_scenario_from_any_working_directory(capsys, tmp_path, monkeypatch):
+    """Without a scenario the sweeps name the shipped ones by the repository's path, not the working directory's."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["sweep", "--grid", "timing.delay_samples=0", "--set", "timing.duration_s=0.01", "--jobs", "1",
+                 "--quiet"]) == 0
+    assert "1 runs" in capsys.readouterr().out
+
+
 def test_sim_exits_1_naming_the_divergence_when_v_leaves_25_pct_of_v_ref(capsys):
     """A fixed-voltage source on the constant-power load rings up: it passes 100 V (+25 %) well inside the
     0.5-2 x v_ref the simulator used to call a divergence, and the run is failed there, criterion named; a wider
