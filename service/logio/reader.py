@@ -174,31 +174,53 @@ def _read_bytes(path: str | Path):
     return data
 
 
-def _chunk(data: bytes, c: int, dctx) -> bytes:
-    """The records of the chunk whose content starts at c, decompressed and checked against the chunk's CRC (when
-    the writer stored one); CorruptLog names the chunk's offset if it is not intact."""
-    size, crc = struct.unpack_from("<QI", data, c + 16)  # start, end, uncompressed size, crc, compression, records
+def _unchunk(content, dctx=None) -> bytes:
+    """A chunk record's content (from its start time on) decompressed, after checking it whole: the header, the data
+    filling the record, the zstd/lz4 frame, the uncompressed size and the CRC (when the writer stored one).
+    ValueError says what failed."""
     try:
-        comp, c2 = _string(data, c + 28)
-        rl = struct.unpack_from("<Q", data, c2)[0]
-        raw = data[c2 + 8:c2 + 8 + rl]
+        _start, _end, size, crc, comp_len = struct.unpack_from("<QQQII", content, 0)
+        if comp_len > 64:
+            raise ValueError(f"compression name of {comp_len} bytes")
+        comp = bytes(content[32:32 + comp_len]).decode()
+        rl = struct.unpack_from("<Q", content, 32 + comp_len)[0]
+    except (struct.error, UnicodeDecodeError) as e:
+        raise ValueError(f"chunk header does not parse ({type(e).__name__})") from None
+    raw_off = 40 + comp_len
+    if raw_off + rl != len(content):
+        raise ValueError(f"chunk data of {rl} bytes does not fill its record ({len(content) - raw_off})")
+    if comp not in ("zstd", "lz4", ""):
+        raise ValueError(f"compression {comp!r} not supported")
+    raw = content[raw_off:]
+    try:
         if comp == "zstd":
-            out = dctx.decompress(raw, max_output_size=min(size, 1 << 32))
+            if dctx is None:
+                import zstandard
+
+                dctx = zstandard.ZstdDecompressor()
+            recs = dctx.decompress(raw, max_output_size=min(size, 1 << 32))
         elif comp == "lz4":
             import lz4.frame
 
-            out = lz4.frame.decompress(raw)
-        elif comp:
-            raise LogError(f"chunk compression {comp!r} not supported")
+            recs = lz4.frame.decompress(raw)
         else:
-            out = raw
-    except LogError:
-        raise
-    except Exception as e:  # noqa: BLE001 - zstd/lz4/struct errors on a corrupt chunk
-        raise CorruptLog(c - 9, f"does not decompress ({type(e).__name__}: {e})") from None
-    if len(out) != size or (crc and zlib.crc32(out) != crc):
-        raise CorruptLog(c - 9, "CRC mismatch" if len(out) == size else f"{len(out)} bytes, the header says {size}")
-    return out
+            recs = bytes(raw)
+    except Exception as e:  # noqa: BLE001 - zstd/lz4 raise their own error types on a corrupt frame
+        raise ValueError(f"{comp} frame does not decompress ({type(e).__name__}: {e})") from None
+    if len(recs) != size:
+        raise ValueError(f"decompressed to {len(recs)} bytes, the header says {size}")
+    if crc and zlib.crc32(recs) != crc:
+        raise ValueError(f"CRC mismatch (stored {crc:08x}, computed {zlib.crc32(recs):08x})")
+    return recs
+
+
+def _chunk(data: bytes, c: int, ln: int, dctx) -> bytes:
+    """The records of the chunk whose content starts at c (ln bytes), decompressed and checked (_unchunk);
+    CorruptLog names the chunk's offset if it is not intact."""
+    try:
+        return _unchunk(memoryview(data)[c:c + ln], dctx)
+    except ValueError as e:
+        raise CorruptLog(c - 9, str(e)) from None
 
 
 def _records(path: str | Path, data: bytes):
@@ -209,7 +231,7 @@ def _records(path: str | Path, data: bytes):
     dctx = zstandard.ZstdDecompressor()
     for op, c, _ln in _top_level(data):
         if op == 0x06:
-            yield _chunk(data, c, dctx)
+            yield _chunk(data, c, _ln, dctx)
 
 
 def _channel_messages(data: bytes, cids: set[int]) -> list[bytes]:
@@ -225,7 +247,8 @@ def _channel_messages(data: bytes, cids: set[int]) -> list[bytes]:
         n = struct.unpack_from("<I", data, c + 32)[0]
         if not cids & {cid for cid, _off in struct.iter_unpack("<HQ", data[c + 36:c + 36 + n])}:
             continue
-        recs = _chunk(data, struct.unpack_from("<Q", data, c + 16)[0] + 9, dctx)
+        at, length = struct.unpack_from("<QQ", data, c + 16)  # the chunk record: its offset and length
+        recs = _chunk(data, at + 9, length - 9, dctx)
         if _mcapscan is not None:
             out += [m for cid in sorted(cids) for m in _mcapscan.raw(recs, cid)]
             continue
@@ -434,41 +457,9 @@ def _parse(op: int, content) -> object:
 
 
 def _chunk_records(content) -> list:
-    """A chunk's schemas, channels and messages, after checking it whole: zstd/lz4 frame, uncompressed size, CRC
-    (when the writer stored one), every inner record framing and parsing. ValueError says what failed."""
-    import zstandard
-
-    try:
-        hdr = ReadDataStream(BytesIO(bytes(content[:8 * 3 + 4 + 4 + 64])))
-        _start, _end, size, crc = hdr.read8(), hdr.read8(), hdr.read8(), hdr.read4()
-        comp_len = hdr.read4()
-        if comp_len > 64:
-            raise ValueError(f"compression name of {comp_len} bytes")
-        comp = bytes(content[32:32 + comp_len]).decode()
-        rl = struct.unpack_from("<Q", content, 32 + comp_len)[0]
-    except (McapError, struct.error, UnicodeDecodeError) as e:
-        raise ValueError(f"chunk header does not parse ({type(e).__name__})") from None
-    raw_off = 40 + comp_len
-    if raw_off + rl != len(content):
-        raise ValueError(f"chunk data of {rl} bytes does not fill its record ({len(content) - raw_off})")
-    raw = content[raw_off:]
-    try:
-        if comp == "zstd":
-            recs = zstandard.ZstdDecompressor().decompress(raw, max_output_size=min(size, 1 << 32))
-        elif comp == "lz4":
-            import lz4.frame
-
-            recs = lz4.frame.decompress(raw)
-        elif comp == "":
-            recs = bytes(raw)
-        else:
-            raise ValueError(f"compression {comp!r} not supported")
-    except Exception as e:  # noqa: BLE001 - zstd/lz4 raise their own error types on a corrupt frame
-        raise ValueError(f"{comp} frame does not decompress ({type(e).__name__}: {e})") from None
-    if len(recs) != size:
-        raise ValueError(f"decompressed to {len(recs)} bytes, the header says {size}")
-    if crc and zlib.crc32(recs) != crc:
-        raise ValueError(f"CRC mismatch (stored {crc:08x}, computed {zlib.crc32(recs):08x})")
+    """A chunk's schemas, channels and messages, after checking it whole (_unchunk) and every inner record framing
+    and parsing. ValueError says what failed."""
+    recs = _unchunk(content)
     out = []
     off = 0
     for op, c, ln in _walk(recs):
