@@ -153,6 +153,13 @@ def _network_live(args: argparse.Namespace) -> dict:
                               progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
 
 
+def _network_rate(args: argparse.Namespace) -> dict:
+    from clients.bench.network_rate import bench_network_rate
+
+    return bench_network_rate(float(args.rates) if args.rates else 1000.0, max(args.runs, 1), args.seconds or 2.0,
+                              progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+
+
 def _fuzz(args: argparse.Namespace) -> dict:
     from clients.bench.fuzz import bench_fuzz
 
@@ -203,6 +210,10 @@ BENCHES: dict[str, Bench] = {
                                          "with SIGKILL and the coordinator lost and restarted (--realtime: at 1 kHz, "
                                          "and the highest of --rates at which two-source regulates, with each "
                                          "process's CPU; default rates 1000,1500,2000,3000, --seconds each)"),
+    "network-rate": Bench(_network_rate, "the realtime two-source network at one rate (--rates, one, default 1000 "
+                                         "Hz), --runs runs of --seconds (default 2), each beside a bare Zenoh echo "
+                                         "with as many processes: runs passing every check, commands after their "
+                                         "period and p99 age against the echo's"),
     "fuzz": Bench(_fuzz, "bad measurement frames (bit flips, boundary values, NaN and inf, cuts) put between the "
                          "samples of the paper's stack in lockstep at 10 kHz: frames counted against sent by reason, "
                          "loop deaths, tracebacks, commands after a bad frame, v's deviation from v_ref (-n frames, "

@@ -229,6 +229,16 @@ def test_bench_fuzz_runs_and_reports_its_keys(capsys):
     assert r["v_max_dev_after_50ms_pct"] is not None and r["frames_per_s"] > 0
 
 
+def test_bench_network_rates_echo_counts_every_reply_it_gets_once_by_its_age():
+    """bench network-rate's echo half: three echo processes answer a 1 kHz wall-clock loop; every reply is counted
+    once (replies + lost = samples x echoes), none before the sample it answers."""
+    from clients.bench.network_rate import echo_run
+
+    r = echo_run(3, 1000.0, 0.3, 4)
+    assert r["commands"] + r["lost"] == 300 * 3 and r["commands"] > 0 and r["processes"] == 4
+    assert 1 <= r["p50_samples"] <= r["p99_samples"]
+
+
 def test_bench_wake_measures_both_slack_settings_and_gives_the_thread_its_own_back(capsys):
     from service.priority import DEFAULT_TIMER_SLACK_NS, timer_slack_ns
 
