@@ -215,8 +215,37 @@ class NetworkRole(Strict):
                                                                                       "(counted), V")
     v_ref_max_V: Volt | None = Field(default=None, description="an allocation whose v_ref "
                                                                                       "is above this is refused, V")
-    P_max_W: WattPos = Field(default=1e6, description="an allocation whose |P^{r,in}| is above "
-                                                                            "this is refused (counted), W")
+    P_max_W: WattPos = Field(default=1e6, description="a grid sample whose power at a terminal |v i_out| is above "
+                                                      "this is refused (counted), W")
+    # what it shares with (service.network.layer.Sharing): it forms P^{r,in} = -alpha_s sum_k P_k itself each sample
+    # from the rig's grid sample (PREFIX/RIG/grid); the coordinator sends v_ref and Z^{r,in} per window
+    rig: str = Field(default="rig", description="the rig's id: its grid sample PREFIX/RIG/grid is what the sharing is "
+                                                "formed from")
+    index: Annotated[int, Field(ge=0, le=65535)] = Field(
+        default=0, description="its position among the network's sources (the grid sample's order)")
+    shares: list[Annotated[float, Field(gt=0, le=1e6)]] = Field(
+        default=[1.0], description="every source's share of the load, in the network's order (layer: the sources' "
+                                   "share)")
+    sources_connected: list[bool] = Field(default=[True], description="which sources start connected, in the "
+                                                                      "network's order")
+    sharing: Literal["none", "live-sum"] = Field(
+        default="live-sum", description="the layer's mode: none: its own lines' power; live-sum: its share of all "
+                                        "connected sources' line powers")
+    carry_power_W: WattNonNeg = Field(default=0.0, description="a source whose lines draw less than this |power| is "
+                                                               "left out of the live sum (layer.idle_power_W), W")
+    plug_in_ramp_s: Secs = Field(default=0.0, description="a source that connects takes its share linearly over this "
+                                                          "long (layer.plug_in_ramp_s), s")
+    window_s: SecsPos = Field(default=0.05, description="the layer's window (layer.window_s): a lockstep source waits "
+                                                        "for the coordinator's window message at each window's "
+                                                        "start, s")
+
+    @model_validator(mode="after")
+    def _index_in_shares(self):
+        if len(self.sources_connected) != len(self.shares):
+            raise ValueError(f"sources_connected: {len(self.sources_connected)} entries for {len(self.shares)} shares")
+        if self.index >= len(self.shares):
+            raise ValueError(f"index: {self.index} is not below the {len(self.shares)} sources")
+        return self
 
 
 class ComponentConfig(Named):

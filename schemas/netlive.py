@@ -61,7 +61,7 @@ class CoordinatorConfig(Named):
 
 def source_component(net: NetworkScenario, source: str, *, prefix: str = "energyctl", zenoh: ZenohConfig | None = None,
                      lockstep: bool = True, log_dir: str | None = None, coordinator: str = "coordinator",
-                     connect_at_s: float | None = None, core: str = "auto") -> ComponentConfig:
+                     connect_at_s: float | None = None, core: str = "auto", rig: str = "rig") -> ComponentConfig:
     """The daemon config of one source of the network: its controller and its model (with the scenario's model
     error) as the offline run builds them, the network's rate and loop delay, a sample-triggered loop. connect_at_s
     None: the time of its first connect event in the scenario, if any."""
@@ -79,7 +79,11 @@ def source_component(net: NetworkScenario, source: str, *, prefix: str = "energy
                        idle_tau_s=net.layer.idle_tau_s, open_idle=net.layer.open_idle,
                        resume_ramp_s=net.layer.resume_ramp_s, fallback_idle_power_W=net.layer.fallback_idle_power_W,
                        extrapolate_s=net.layer.extrapolate_s, connect_at_s=connect_at_s,
-                       connected_at_start=src.connected, fallback=net.fallback_of(source))
+                       connected_at_start=src.connected, fallback=net.fallback_of(source), rig=rig,
+                       index=list(net.sources).index(source), shares=[s.share for s in net.sources.values()],
+                       sources_connected=[s.connected for s in net.sources.values()], sharing=net.layer.mode,
+                       carry_power_W=net.layer.idle_power_W, plug_in_ramp_s=net.layer.plug_in_ramp_s,
+                       window_s=net.layer.window_s)
     v_nom = net.nominal_v_V
     return ComponentConfig(
         id=source, prefix=prefix, zenoh=zenoh or ZenohConfig(), model=src.model_params(), controller=src.controller,
