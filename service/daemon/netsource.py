@@ -188,9 +188,9 @@ class NetworkSourceDaemon(Daemon):
                 raise DecodeError("GridSample", f"i_out[{j}]", f"|v i_out| {abs(v[j] * i_out[j]):g} W above "
                                                               f"{r.P_max_W:g}")
         if seq <= g.seq:
-            if seq == g.seq:
-                raise DecodeError("GridSample", "seq", f"{seq} again")
-            self._new_sharing()  # behind the newest: the rig restarted
+            if seq != 0:  # (a passed sample, or a stray sender's: the sharing steps on each sample once, in order)
+                raise DecodeError("GridSample", "seq", f"{seq} not after {g.seq}")
+            self._new_sharing()  # seq 0 again: the rig restarted (as a measurement's seq 0 says)
         P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(ns)]
         want, rate = self.sharing.step(seq, P, connected)
         if self.grid_connected is not None and connected != self.grid_connected:
