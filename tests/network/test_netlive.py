@@ -157,11 +157,14 @@ def test_a_restarted_source_asks_to_connect_by_itself_and_status_says_why(tmp_pa
     assert [e["target"] for e in res["metrics"]["events"] if e["kind"] == "connect"] == ["S2"], res["metrics"]["events"]
 
 
-def _sharing_error_pp(rig, t0: float, t1: float, shares: dict[str, float], every_s: float = 0.1) -> float:
+def _sharing_error_pp(rig, t0: float, t1: float, shares: dict[str, float], every_s: float = 0.1,
+                      skip: tuple[float, float] = (0.0, 0.0)) -> float:
     """The worst sharing error over [t0, t1) of the rig's trace (percentage points): each source's part of what
-    they deliver against its share, on means over every_s."""
+    they deliver against its share, on means over every_s (those starting within skip left out)."""
     worst = 0.0
     for a in np.arange(t0, t1 - every_s / 2, every_s):
+        if skip[0] <= a < skip[1]:
+            continue
         sel = (rig.t >= a) & (rig.t < a + every_s)
         P = {s: float(np.mean(rig.sources[s]["P"][sel])) for s in shares}
         total, weight = sum(P.values()), sum(shares.values())
@@ -176,11 +179,13 @@ def _t(st: dict) -> float:
 
 def test_without_the_coordinator_the_sources_keep_sharing_and_a_restarted_one_resumes(tmp_path):
     """Issue 28 item 6. The 1 kHz network in lockstep (S1:S2 = 2:1 at 2.4 kW), its coordinator SIGKILLed for 10 s of
-    sample time: each daemon keeps forming its share from the rig's grid sample with the last window's v_ref, so
-    the sharing stays within 2 pp of 2:1 on every 100 ms mean and the bus within +-2 %. Before, every sample's
-    P^{r,in} came from the coordinator: the sources fell back, S2 fell below the fallback's 300 W, idled, and 2:1
-    became about 90:10. A coordinator started again resumes from the v_ref the daemons report and sends windows."""
-    sets = ["events=[]", "timing.duration_s=14.0"]
+    sample time with the load stepping to 2 kW at 6 s meanwhile: each daemon keeps forming its share from the rig's
+    grid sample with the last window's v_ref, so the sharing stays within 2 pp of 2:1 on every 100 ms mean (but the
+    200 ms after the step) and the bus within +-2 %. Before, every sample's P^{r,in} came from the coordinator: the
+    sources fell back to their last allocation and split the step by their lines, 7-8.3 pp off 2:1 (S2 at 523 of
+    2 055 W) from the step to the end (measured on 2cceeaf with this run; a 1.5 kW step: 16-17 pp). A coordinator
+    started again resumes from the v_ref the daemons report and sends windows."""
+    sets = ["events=[]", "timing.duration_s=14.0", "loads.P.steps=[[2.0, 2400.0], [6.0, 2000.0]]"]
     with LiveNetwork(SCENARIOS / "network" / "realtime.toml", tmp_path / "run", sets=sets) as live:
         live.start()
         with live.session() as z:
@@ -207,7 +212,8 @@ def test_without_the_coordinator_the_sources_keep_sharing_and_a_restarted_one_re
         rig = read_rig_log(str(live.logs / "rig.mcap"))
     assert not res["metrics"]["diverged"]
     assert t_back >= t_kill + 10.0
-    assert _sharing_error_pp(rig, t_kill, t_kill + 10.0, {"S1": 2.0, "S2": 1.0}) <= 2.0
+    assert t_kill < 6.0
+    assert _sharing_error_pp(rig, t_kill, t_kill + 10.0, {"S1": 2.0, "S2": 1.0}, skip=(6.0, 6.2)) <= 2.0
     out = (rig.t >= t_kill) & (rig.t < t_back)
     assert float(np.max(np.abs(rig.buses["bus"][out] - 80.0))) <= 0.02 * 80.0
     assert _sharing_error_pp(rig, t_back + 0.2, float(rig.t[-1]), {"S1": 2.0, "S2": 1.0}) <= 2.0
