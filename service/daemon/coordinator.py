@@ -87,6 +87,7 @@ class Coordinator:
         self.resumed: dict[str, float] = {}
         self.sizes = (self.ns, len(net.buses), len(net.loads))
         self._behind = 0  # grid samples in a row not after the newest one taken
+        self._jump = -2  # the last grid sample refused for coming more than a window after the newest
         self._tripping: set[str] = set()  # sources asked to trip, until a sample shows their breaker open
         self.rig_alive: bool | None = None  # the rig's token: gone means this coordinator may be the one cut off
         self._alive_checked: Queue = Queue()
@@ -252,6 +253,12 @@ class Coordinator:
             self.layer = InterconnectionLayer(self.net, self.layer.loads)
             self.seq = -1
             self._offers.clear()  # made in the run that ended
+        elif self.seq >= 0 and seq > self.seq + self.layer.per_window and seq != self._jump + 1:
+            # more than a window ahead: taken when the next sample follows it (a rig seen again after an outage),
+            # not from one alone (a stray sender's would stop every window message until the rig's caught up)
+            self._jump = seq
+            self._reject(f"grid.seq: {seq} is {seq - self.seq} samples after {self.seq}; taken if the next follows")
+            return
         elif self.seq >= 0 and seq > self.seq + 1:
             self.counters["missing_samples"] += seq - self.seq - 1
         self._behind = 0

@@ -57,6 +57,7 @@ I_MAX_A = 10_000.0  # a grid sample's current beyond this (A) is refused, named 
 
 FALLBACK_REFERENCE = {"last-allocation": "last allocation (fallback)", "own-terminal": "own terminal (fallback)"}
 WINDOW_PENDING_MAX = 8  # window messages held until their sample comes (lockstep: at most the next one)
+GRID_RING = 64  # grid samples kept between two polls (a lockstep daemon polls every sample)
 
 
 class NetworkSourceDaemon(Daemon):
@@ -77,6 +78,7 @@ class NetworkSourceDaemon(Daemon):
         self.sharing = Sharing.of_role(r, self.period_s)
         self.grid_connected: list[bool] | None = None  # the breakers of the newest grid sample
         self._changed_at = -1  # the grid sample whose breakers differ from the one before it
+        self._grid_jump = -2  # the last grid sample refused as ahead of the samples
         self.win = Neighbour(r.coordinator, None)  # the newest window message: seq (applies from), alive
         self.win_vals: tuple | None = None  # the window message applied (schemas.codec.WINDOW order)
         self._win_pending: deque = deque(maxlen=WINDOW_PENDING_MAX)  # received, for a sample still to come
@@ -112,8 +114,9 @@ class NetworkSourceDaemon(Daemon):
             self._fast.close()
             self._fast = None
         c, s, r = self.cfg, self.session, self.role
-        # a ring of the newest grid samples: the sharing steps on each that came (its rate over the ones missed)
-        self.grid.sub = latest(s, key(c.prefix, r.rig, "grid"), 8)
+        # a ring of the newest grid samples: the sharing steps on each that came (its rate over the ones missed); deep
+        # enough that a burst of bad frames on the key does not push out the sample a lockstep tick waits for
+        self.grid.sub = latest(s, key(c.prefix, r.rig, "grid"), GRID_RING)
         self.grid.topic = f"{c.prefix}/{r.rig}/grid"
         self.win.sub = latest(s, key(c.prefix, c.id, "window"), WINDOW_PENDING_MAX)
         self.win.topic = f"{c.prefix}/{c.id}/window"
@@ -154,7 +157,7 @@ class NetworkSourceDaemon(Daemon):
                 self._reject(f"window.{e.field}: invalid", now, e.reason)
                 continue
             self._win_pending.append(v)
-            w.seq, w.t, w.rx_ns = max(w.seq, v[0]), v[1], now
+            w.seq, w.t, w.rx_ns = v[0], v[1], now
             w.count += 1
             if w.lagging and v[0] >= self._last_seq:
                 w.lagging = False
@@ -176,7 +179,10 @@ class NetworkSourceDaemon(Daemon):
         if abs(t - seq * T) > 0.5 * T:
             raise DecodeError("GridSample", "t", f"{t!r} s is not seq x T ({seq} x {T:g} s)")
         ls = self.last_sample
-        if ls is not None and t > ls[1] + r.stale_s and seq > ls[0] + 1:
+        if ls is not None and t > ls[1] + r.stale_s and seq > ls[0] + 1 and seq != self._grid_jump + 1:
+            # ahead of the samples: a stray sender's, or the rig's after this daemon was cut off (its next sample
+            # follows this one: then taken, before the measurements' own clock resyncs)
+            self._grid_jump = seq
             raise DecodeError("GridSample", "seq", f"{seq} is ahead of the samples (newest {ls[0]})")
         hi = self.cfg.meas_v_max_V
         for j in range(ns):
@@ -210,10 +216,13 @@ class NetworkSourceDaemon(Daemon):
 
     def _check_window(self, v: tuple) -> None:
         """Refuse (DecodeError naming the field) a window message no layer of this network sends: a v_ref outside
-        the layer's bounds."""
+        the layer's bounds, a sample more than two windows ahead of the newest one stepped on."""
         r = self.role
         if (r.v_ref_min_V is not None and v[4] < r.v_ref_min_V) or (r.v_ref_max_V is not None and v[4] > r.v_ref_max_V):
             raise DecodeError("LayerWindow", "v_ref_V", f"{v[4]:g} V outside [{r.v_ref_min_V}, {r.v_ref_max_V}]")
+        ls = self.last_sample
+        if ls is not None and v[0] > ls[0] + 2 * self.per_window + 1:  # the coordinator sends at most a window ahead
+            raise DecodeError("LayerWindow", "seq", f"{v[0]} is ahead of the samples (newest {ls[0]})")
 
     def _await_neighbours(self, seq: int, deadline: int) -> None:
         """Lockstep: poll until the grid sample for ``seq`` came, then, where a window message is due (a window's
@@ -274,8 +283,12 @@ class NetworkSourceDaemon(Daemon):
         self._take_sample(v)
         role, ctl, rec, g = self.role, self.ctl, self.recorder, self.grid
         pend = self._win_pending
-        while pend and pend[0][0] <= seq:  # the window messages from this sample on, in order
-            wv = pend.popleft()
+        due = [wv for wv in pend if wv[0] <= seq] if pend else ()
+        if due:  # the window messages from this sample on, in order (a later one stays until its sample)
+            keep = [wv for wv in pend if wv[0] > seq]
+            pend.clear()
+            pend.extend(keep)
+        for wv in due:
             self.win_vals = wv
             new = ctl.set_v_ref(wv[4])  # the layer's move, applied before this sample as offline
             if new is not None:
