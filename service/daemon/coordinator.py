@@ -292,7 +292,7 @@ class Coordinator:
             rec.offer(self.t_tick, t, (seq, t, sum(bus_v) / len(bus_v) if bus_v else 0.0, sum(load_P),
                                        bool(bus_v)))
         # with idle_power_W = 0 a connected source is active (it idles only while disconnected)
-        win_k, moves = layer.step(seq, (v, i_out, connected, bus_v, load_P), [True] * ns, list(connected))
+        win_k, moves = layer.step(seq, (v, i_out, connected, bus_v, load_P), [True] * ns, list(connected), P)
         if win_k is not None:
             self.window = win_k
             if layer.active:

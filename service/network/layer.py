@@ -142,13 +142,16 @@ class InterconnectionLayer:
     def want_prev(self) -> list[float]:
         return self.sharing.want_prev
 
-    def step(self, k: int, grid: tuple, fresh: list[bool], active: list[bool]) -> tuple[int | None, list]:
+    def step(self, k: int, grid: tuple, fresh: list[bool], active: list[bool], P: list[float] | None = None
+             ) -> tuple[int | None, list]:
         """The layer after sample k: grid = (v, i_out, connected, bus_v, load_P) as the rig measured them (the grid
         sample); the window sums, and at a window's end the v_ref moves (source index, V; for the sources whose
         messages reach them: fresh) and the next window (window_end). The per-sample sharing is not here: each
-        source forms it itself (Sharing), and the layer's own (allocate) is for its record."""
+        source forms it itself (Sharing), and the layer's own (allocate) is for its record. P: the lines' powers
+        v i_out (0 when disconnected) if the caller has them already."""
         v, i_out, connected, bus_v, load_P = grid
-        P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(self.ns)]
+        if P is None:
+            P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(self.ns)]
         self.accumulate(bus_v, v, P, load_P)
         return self.window_end(k, connected, fresh, active)
 

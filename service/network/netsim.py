@@ -192,9 +192,8 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         n = k + 1
         # the layer's window: move v_ref to restore the buses, set the next window's feasibility ranges
         fresh_now = [t - got[j][0] <= STALE_S for j in range(ns)]  # the layer's messages reach it: v_ref moves
-        win_k, moves = layer.step(k, ([s.v for s in samples], [s.i_load for s in samples], connected,
-                                      rig.bus_measurements(), rig.load_powers()),
-                                  fresh_now, [c.mode == ACTIVE for c in ctls])
+        win_k, moves = layer.step(k, ([s.v for s in samples], None, connected, rig.bus_measurements(),
+                                      rig.load_powers()), fresh_now, [c.mode == ACTIVE for c in ctls], P)
         for j, v_ref in moves:
             new = ctls[j].set_v_ref(v_ref)
             if new is not None:  # applied before the next tick: a log's v_ref event
