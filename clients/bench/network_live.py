@@ -249,3 +249,43 @@ def bench_network_live(realtime: bool, rates: list[float], seconds: float, progr
             ok = [x["rate_hz"] for x in out["rates"] if x["regulates"]]
             out["highest_regulating_rate_hz"] = max(ok, default=None)
     return out
+
+
+def coordinator_traffic(work: Path, rate_hz: float, seconds: float) -> dict:
+    """two-source in lockstep at rate_hz for seconds of sample time: the coordinator's messages to the sources per
+    second of sample time (window messages; allocations, which it sent every sample before decision 0042, are
+    counted too) and its CPU per sample after its first one (its recorder included)."""
+    counts = {"window": 0, "alloc": 0}
+    scen = _no_events(TWO_SOURCE, work, seconds)
+    with LiveNetwork(scen, work / f"coordinator-{rate_hz:g}", [f"timing.control_rate_hz={rate_hz}"]) as live:
+        live.start()
+        with live.session() as z:
+            subs = [z.declare_subscriber(f"{live.prefix}/*/{leaf}",
+                                         lambda m, leaf=leaf: counts.__setitem__(leaf, counts[leaf] + 1))
+                    for leaf in counts]
+            pid = live.by_name["coordinator"].pid
+            st0 = live.wait_until(z, "coordinator", lambda st: st["seq"] > 0, 120)
+            c0 = cpu_s(pid)
+            c1 = c0
+            rig_p = live.by_name["rig"]
+            while rig_p.poll() is None:  # its CPU just before the rig ends
+                c1 = cpu_s(pid)
+                time.sleep(0.1)
+            res = live.wait_rig(900)
+            for sub in subs:
+                sub.undeclare()
+        live.close()
+    samples = res["samples"] - st0["seq"]
+    return {"rate_hz": rate_hz, "simulated_s": seconds, "samples": res["samples"], "messages": counts,
+            "messages_per_simulated_s": {k: v / seconds for k, v in counts.items()},
+            "coordinator_cpu_us_per_sample": 1e6 * (c1 - c0) / max(1, samples)}
+
+
+def bench_network_coordinator(rates: list[float], seconds: float, progress) -> dict:
+    out: dict = {"pacing": "lockstep", "machine_cpus": os.cpu_count(), "runs": []}
+    with tempfile.TemporaryDirectory(prefix="energyctl-netco-") as tmp:
+        for r in rates:
+            progress(f"{r:g} Hz ...")
+            out["runs"].append(coordinator_traffic(Path(tmp), r, seconds))
+            progress(f"{r:g} Hz: {out['runs'][-1]}")
+    return out
