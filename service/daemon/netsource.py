@@ -41,10 +41,10 @@ from collections import deque
 
 import zenoh
 
-from schemas.codec import CMD, GRID, WINDOW, DecodeError, Z
+from schemas.codec import GRID, WINDOW, DecodeError, Z
 from schemas.component import ComponentConfig
 from service.core.interaction import outgoing_power_at
-from service.core.source import ACTIVE, IDLE, MODES, SourceController
+from service.core.source import ACTIVE, MODES, SourceController
 from service.core.types import Sample
 from service.daemon.bus import key, latest, request
 from service.daemon.daemon import Daemon, _now_ns
@@ -88,6 +88,7 @@ class NetworkSourceDaemon(Daemon):
         self.v_ref_moves = 0
         self.fallback_ticks = 0
         self._range: tuple | None = None  # (window, Z^{r,in}) the feasibility monitor holds
+        self._t_prev = 0.0  # the previous sample's time (a v_ref event is dated there)
         self._seen_restarts = 0
         k_connect = None if self.role.connect_at_s is None else round(self.role.connect_at_s / self.period_s)
         self._connect_seq = k_connect  # the sample from which the breaker is to close
@@ -109,10 +110,7 @@ class NetworkSourceDaemon(Daemon):
         return out
 
     def open(self) -> None:
-        super().open()
-        if self._fast is not None:  # the compiled tick steps the bare core; this daemon steps the source controller
-            self._fast.close()
-            self._fast = None
+        super().open()  # with the compiled tick: the controller plans each tick, the compiled tick steps the core
         c, s, r = self.cfg, self.session, self.role
         # a ring of the newest grid samples: the sharing steps on each that came (its rate over the ones missed); deep
         # enough that a burst of bad frames on the key does not push out the sample a lockstep tick waits for
@@ -271,16 +269,19 @@ class NetworkSourceDaemon(Daemon):
         if self._auto_connect:  # a new run: its start decides again
             self._connect_seq, self._auto_connect = None, False
 
-    # ---------------------------------------------------------------- the tick
-    def _step(self, v: tuple, now: int) -> None:
-        """The tick's second half for this daemon (the first, Daemon._sample, checks the sample alone: no compiled
-        tick here): the source controller steps on the sample with the P^{r,in} it formed from the grid sample."""
-        t_control = _now_ns()
-        seq, t = v[0], v[1]
+    # ---------------------------------------------------------------- the tick (Daemon._step, with these parts)
+    def _begin(self, v: tuple) -> None:
+        """A new run (the rig restarted) forgets the previous one's; the previous sample's time, for a v_ref event."""
         if self.restarts != self._seen_restarts:
-            self._forget_run(seq)
-        t_prev = self.last_sample[1] if self.last_sample is not None else t
-        self._take_sample(v)
+            self._forget_run(v[0])
+        self._t_prev = self.last_sample[1] if self.last_sample is not None else v[1]
+
+    def _reference(self, v: tuple, now: int) -> tuple[float, float, int]:
+        """This daemon's reference: the window messages due at this sample applied (v_ref, Z^{r,in}), its breaker
+        from the grid sample, and P^{r,in} as it formed it from the grid sample (carried forward by its age) through
+        the source controller (idle, fallback, the ramp back): the core steps on what the controller gives it (the
+        compiled tick, in Daemon._step), or the controller's idle command goes out."""
+        seq, t = v[0], v[1]
         role, ctl, rec, g = self.role, self.ctl, self.recorder, self.grid
         pend = self._win_pending
         due = [wv for wv in pend if wv[0] <= seq] if pend else ()
@@ -294,6 +295,7 @@ class NetworkSourceDaemon(Daemon):
             if new is not None:
                 self.v_ref_moves += 1
                 if rec is not None:
+                    t_prev = self._t_prev
                     rec.offer(self.t_ev, t_prev, (t_prev, seq, "config", json.dumps({"v_ref_V": new.v_ref_V})))
             if wv[6] and (wv[2], wv[7:11]) != self._range:  # a new window's range, or this one's after an event
                 self._range = (wv[2], wv[7:11])
@@ -308,35 +310,27 @@ class NetworkSourceDaemon(Daemon):
         # (one from ahead of this sample by more than stale_s is not this run's: a rig restarted, a stray sender)
         fresh = g.count > 0 and -role.stale_s <= age <= role.stale_s
         P_in = outgoing_power_at(t, g.t, g.P, g.P_dot, role.stale_s, role.extrapolate_s) if fresh else g.P
-        connected = True if self.connected is None else self.connected  # unknown: its own terminal decides
-        limited = False
-        if self.state == "active":
-            du, du_next = ctl.step(Sample(seq, t, v[2], v[3], v[4], v[5]), P_in, 0.0, connected, fresh)
-            stepped = ctl.mode != IDLE
-            if stepped:
-                limited = self.core.out.limited
-                if not fresh:
-                    self.fallback_ticks += 1
-        else:  # inactive: hold the source voltage
-            du = du_next = 0.0
-            stepped = False
-            self.core.hold(seq)
         self.reference = "sharing" if fresh else FALLBACK_REFERENCE[role.fallback]
-        if self._connect_seq is not None and not connected:
+        if self.state != "active":  # inactive: hold the source voltage
+            return ctl.P_in_used, 0.0, self.HOLD
+        connected = True if self.connected is None else self.connected  # unknown: its own terminal decides
+        P, P_dot, r = ctl.plan(Sample(seq, t, v[2], v[3], v[4], v[5]), P_in, 0.0, connected, fresh)
+        if r is not None:  # idle: its own command, the core told
+            self._held_du = r
+            return P, 0.0, self.HELD
+        if not fresh:
+            self.fallback_ticks += 1
+        return P, P_dot, self.STEP
+
+    def _before_publish(self, seq: int, t: float) -> None:
+        if self._connect_seq is not None and self.connected is False:
             self._maybe_connect(seq, t)
-        cmd = CMD.encode(seq, t, du, du_next, limited)
-        self._remember(seq, v[4], du)
-        if rec is not None:
-            rec.offer_group(0, t, *v, seq, t, ctl.P_in_used, 0.0, stepped, seq, t, du, du_next, limited)
-        t_put = _now_ns()
-        self.control_ns = t_put - t_control
-        self.cmd_pub.put(cmd)
-        self.put_ns = _now_ns() - t_put
-        self.last_cmd = (seq, t, du, du_next, limited)
-        est = self.core.out.est
-        if stepped and ctl.mode == ACTIVE and est is not None and t >= 5.0 * self.core.cfg.deriv_tau_s:
-            self.feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
-        self._rarer_work(t, stepped and est is not None)
+
+    def _feasibility(self, t: float, P_out: float, Qdot_out: float) -> None:
+        """A stepped tick's P^{r,out} and Qdot^{r,out} against Z^{r,in} of the window message (not in fallback, and
+        after the estimate's derivative filter has settled)."""
+        if self.ctl.mode == ACTIVE and t >= 5.0 * self.core.cfg.deriv_tau_s:
+            self.feas.update(t, P_out, Qdot_out)
 
     # ---------------------------------------------------------------- the plug-in handshake
     def _maybe_connect(self, seq: int, t: float) -> None:
