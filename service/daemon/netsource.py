@@ -89,6 +89,7 @@ class NetworkSourceDaemon(Daemon):
         self.fallback_ticks = 0
         self._range: tuple | None = None  # (window, Z^{r,in}) the feasibility monitor holds
         self._t_prev = 0.0  # the previous sample's time (a v_ref event is dated there)
+        self._reference = self._share  # the tick's reference: the share formed from the grid sample
         self._seen_restarts = 0
         k_connect = None if self.role.connect_at_s is None else round(self.role.connect_at_s / self.period_s)
         self._connect_seq = k_connect  # the sample from which the breaker is to close
@@ -276,11 +277,12 @@ class NetworkSourceDaemon(Daemon):
             self._forget_run(v[0])
         self._t_prev = self.last_sample[1] if self.last_sample is not None else v[1]
 
-    def _reference(self, v: tuple, now: int) -> tuple[float, float, int]:
-        """This daemon's reference: the window messages due at this sample applied (v_ref, Z^{r,in}), its breaker
-        from the grid sample, and P^{r,in} as it formed it from the grid sample (carried forward by its age) through
-        the source controller (idle, fallback, the ramp back): the core steps on what the controller gives it (the
-        compiled tick, in Daemon._step), or the controller's idle command goes out."""
+    def _share(self, v: tuple, now: int) -> tuple[float, float, int]:
+        """This daemon's reference (plugged into Daemon._step): the window messages due at this sample applied
+        (v_ref, Z^{r,in}), its breaker from the grid sample, and P^{r,in} as it formed it from the grid sample
+        (carried forward by its age) through the source controller's plan (idle, fallback, the ramp back): the core
+        steps on what the plan gives it (the compiled tick, in Daemon._step), or the controller's idle command goes
+        out."""
         seq, t = v[0], v[1]
         role, ctl, rec, g = self.role, self.ctl, self.recorder, self.grid
         pend = self._win_pending
