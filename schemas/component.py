@@ -171,12 +171,13 @@ class LoopConfig(Strict):
 
 
 class NetworkRole(Strict):
-    """A source daemon's part in a live network (``energyctl run --network``): where its allocation comes from, the
-    line ends at its terminal it shows as neighbours, and when it asks to connect."""
+    """A source daemon's part in a live network (``energyctl run --network``): what it forms its share from (the
+    rig's grid sample, the network's shares), where its window messages come from, the line ends at its terminal it
+    shows as neighbours, and when it asks to connect."""
 
     network: str = Field(description="the network scenario's name")
-    coordinator: str = Field(default="coordinator", description="the coordinator's id: allocations come on "
-                                                                "PREFIX/ID/alloc, connect requests go to "
+    coordinator: str = Field(default="coordinator", description="the coordinator's id: its window messages come "
+                                                                "on PREFIX/ID/window, connect requests go to "
                                                                 "PREFIX/COORDINATOR/connect")
     lines: list[str] = Field(default=[], description="the lines at its terminal: neighbours on PREFIX/LINE/z/ID")
     idle_power_W: WattNonNeg = Field(default=30.0, description="below this |P^{r,in}| (and "
@@ -195,10 +196,10 @@ class NetworkRole(Strict):
     resume_ramp_s: Secs = Field(default=0.0, description="after a fallback, from its own "
                                                                                   "terminal's power to the allocation "
                                                                                   "linearly over this long, s")
-    stale_s: SecsPos = Field(default=0.01, description="an allocation older than this (sample "
+    stale_s: SecsPos = Field(default=0.01, description="a grid sample older than this (sample "
                                                                              "time) is stale: the source falls back "
-                                                                             "to its own terminal power, s")
-    extrapolate_s: Secs = Field(default=0.002, description="a late allocation is carried "
+                                                                             "(its last share, or its own terminal), s")
+    extrapolate_s: Secs = Field(default=0.002, description="a late P^{r,in} is carried "
                                                                                     "forward along its rate by at "
                                                                                     "most this, s")
     connect_at_s: Secs | None = Field(
@@ -210,10 +211,10 @@ class NetworkRole(Strict):
                                      "trip) asks to connect by itself, connect_at_s unset")
     connect_retry_s: SecsPos = Field(default=0.5, description="sample time between two "
                                                                                     "connect requests, s")
-    v_ref_min_V: Volt | None = Field(default=None, description="an allocation whose v_ref "
+    v_ref_min_V: Volt | None = Field(default=None, description="a window message whose v_ref "
                                                                                       "is below this is refused "
                                                                                       "(counted), V")
-    v_ref_max_V: Volt | None = Field(default=None, description="an allocation whose v_ref "
+    v_ref_max_V: Volt | None = Field(default=None, description="a window message whose v_ref "
                                                                                       "is above this is refused, V")
     P_max_W: WattPos = Field(default=1e6, description="a grid sample whose power at a terminal |v i_out| is above "
                                                       "this is refused (counted), W")
@@ -258,9 +259,9 @@ class ComponentConfig(Named):
         default=2, description="loop delay the core predicts over unless controller.delay_compensation_samples "
                                "(samples)")
     neighbours: list[str] = Field(default=[], description="ids whose interaction variables form P^{r,in}")
-    network: NetworkRole | None = Field(default=None, description="a source on a live network: its P^{r,in} comes "
-                                                                  "from the coordinator's allocation, not from "
-                                                                  "neighbours (energyctl run --network)")
+    network: NetworkRole | None = Field(default=None, description="a source on a live network: its P^{r,in} is its "
+                                                                  "share formed from the rig's grid sample, not "
+                                                                  "from neighbours (energyctl run --network)")
     core: Literal["auto", "c", "python"] = Field(
         default="auto", description="the control core's implementation: 'c' the compiled twin (the daemon refuses "
                                     "to start without it), 'python' the reference (the same bits, about 25x the CPU "

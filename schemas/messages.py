@@ -134,7 +134,8 @@ class Plant(Msg):
 
 
 class Allocation(Msg):
-    """The interconnection layer's word to one network source for one sample (topic ``.../<source>/alloc``, from the
+    """No longer sent (decision 0042: LayerWindow, the source forming its share itself); older runs' logs carry it.
+    The interconnection layer's word to one network source for one sample (topic ``.../<source>/alloc``, from the
     coordinator): what it is to deliver, its voltage reference, its breaker as the rig reported it, and its
     feasibility range Z^{r,in} for the window."""
 

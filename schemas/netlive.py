@@ -7,8 +7,9 @@ Keys (PREFIX: ``prefix``, default energyctl):
 * the rig publishes each source's measurement on PREFIX/SOURCE/meas, each line end's interaction variable on
   PREFIX/LINE/z/NODE and each load's on PREFIX/LOAD/z, and the layer's sample on PREFIX/RIG/grid; it takes each
   source's command from PREFIX/SOURCE/cmd and breaker commands on PREFIX/RIG/breaker (a query);
-* the coordinator publishes each source's allocation on PREFIX/SOURCE/alloc and answers PREFIX/COORDINATOR/status
-  and PREFIX/COORDINATOR/connect (the plug-in handshake);
+* each source's daemon forms its share from the grid sample itself; the coordinator publishes each source's window
+  message on PREFIX/SOURCE/window (v_ref, Z^{r,in}, once per window and at a breaker change) and answers
+  PREFIX/COORDINATOR/status and PREFIX/COORDINATOR/connect (the plug-in handshake);
 * every process holds the liveliness token PREFIX/ID/alive.
 """
 
@@ -51,7 +52,8 @@ class CoordinatorConfig(Named):
     rig: str = Field(default="rig", description="the rig's id: its grid sample and its breaker query")
     lockstep: bool = Field(default=True, description="answer every grid sample in order (lockstep) rather than "
                                                      "only the newest")
-    out: str | None = Field(default=None, description="the coordinator's MCAP log (its allocations, windows, verdicts)")
+    out: str | None = Field(default=None, description="the coordinator's MCAP log (the shares per sample, windows, "
+                                                      "verdicts)")
     resume_timeout_s: SecsPos = Field(default=1.0, description="at start, how long to wait for "
                                                                                      "each source's config (its "
                                                                                      "v_ref) to resume from, s")
