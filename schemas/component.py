@@ -190,11 +190,11 @@ class NetworkRole(Strict):
         default=None, description="in fallback it idles below this |own terminal power| instead, W (None: "
                                   "idle_power_W)")
     fallback: Literal["last-allocation", "own-terminal"] = Field(
-        default="last-allocation", description="a stale allocation: keep its last P^{r,in} (plus the change of its own "
-                                               "terminal's power since; the nested law), or follow its own terminal's "
-                                               "power alone")
+        default="last-allocation", description="a stale grid sample: keep its last P^{r,in} (plus the change of its "
+                                               "own terminal's power since; the nested law), or follow its own "
+                                               "terminal's power alone")
     resume_ramp_s: Secs = Field(default=0.0, description="after a fallback, from its own "
-                                                                                  "terminal's power to the allocation "
+                                                                                  "terminal's power to its share "
                                                                                   "linearly over this long, s")
     stale_s: SecsPos = Field(default=0.01, description="a grid sample older than this (sample "
                                                                              "time) is stale: the source falls back "
@@ -207,7 +207,7 @@ class NetworkRole(Strict):
                                   "connect (the plug-in handshake; again after connect_retry_s when refused or "
                                   "tripped); none: it never asks")
     connected_at_start: bool = Field(default=False, description="the scenario has it connected from the start: a "
-                                     "daemon whose first allocation shows its breaker open (restarted after a "
+                                     "daemon whose first grid sample shows its breaker open (restarted after a "
                                      "trip) asks to connect by itself, connect_at_s unset")
     connect_retry_s: SecsPos = Field(default=0.5, description="sample time between two "
                                                                                     "connect requests, s")
