@@ -17,8 +17,8 @@ import numpy as np
 
 from clients.netlive import LiveNetwork
 from clients.peers.netrig import read_rig_log
-from service.network.netsim import _back_in_band, acceptance_checks
-from service.sim import BAND_SETTLE
+from service.metrics import BAND_SETTLE, back_in_band, worst_back
+from service.network.netsim import acceptance_checks
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "clients" / "embedded" / "network-demo.toml"
@@ -71,13 +71,8 @@ def _no_events(src: Path, work: Path, duration_s: float) -> str:
 def _back_after(rig, t0: float) -> float | None:
     """Seconds from t0 until every bus stays within +-2 % of nominal to the end of the run (None: never)."""
     v_nom = rig.net.nominal_v_V
-    worst = 0.0
-    for v in rig.buses.values():
-        b = _back_in_band(rig.t, v, t0, float(rig.t[-1]) + 1e-9, v_nom, BAND_SETTLE)
-        if b is None:
-            return None
-        worst = max(worst, b)
-    return worst
+    return worst_back(back_in_band(rig.t, v, t0, float(rig.t[-1]) + 1e-9, v_nom, BAND_SETTLE)
+                      for v in rig.buses.values())
 
 
 def _bus_min_after(rig, t0: float) -> float:

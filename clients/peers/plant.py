@@ -20,9 +20,10 @@ from clients.peers.common import matched, wait_alive
 from schemas.codec import CMD, MEAS, PLANT, DecodeError
 from schemas.component import PlantPeerConfig
 from service.daemon.bus import close_session, key, open_session, publisher, queued
+from service.metrics import compute_metrics, max_dev_pct
 from service.plant.profiles import Profile
 from service.plant.rlc import CommandSchedule, RLCPlant, Sensor, load_current
-from service.sim import compute_metrics, profile_events, substeps, trace_divergence
+from service.sim import profile_events, substeps, trace_divergence
 
 PLANT_TRACE = ("t", "i", "v", "u", "i_load", "P_l", "i_meas", "v_meas", "u_meas", "i_load_meas", "du_dt",
                "du_dt_applied", "y_z_true", "y_ref_true")
@@ -323,9 +324,7 @@ class PlantRig:
             res["latency_us"] = {"p50": lat[q // 2] / 1e3, "p99": lat[min(q - 1, int(q * 0.99))] / 1e3,
                                  "max": lat[-1] / 1e3, "n": q}
             # settled regulation: within +-2 % after 50 ms
-            late = trace["t"] >= 0.05
-            dev = np.abs(trace["v"][late] - cfg.v_ref_V) / cfg.v_ref_V
-            res["max_dev_after_50ms_pct"] = float(dev.max() * 100) if late.any() else None
+            res["max_dev_after_50ms_pct"] = max_dev_pct(trace["t"], trace["v"], 0.05, math.inf, cfg.v_ref_V)
         if rec is not None:
             rec.add_metadata("metrics", {"json": json.dumps(res)})
             rec.close()

@@ -498,7 +498,7 @@ def test_the_metrics_say_when_v_deviated_most_and_how_long_it_was_outside_the_ba
     """One 3 % excursion of 10 ms at 0.30 s in an otherwise exact run: hold_max_dev_pct finds 3 %, and the new
     metrics put it at 0.30 s and 10 ms outside the band (a run that never settles and a single stall look alike
     in hold_max_dev_pct alone)."""
-    from service.sim import compute_metrics
+    from service.metrics import compute_metrics
 
     v_ref, dt = 80.0, 1e-4
     t = np.arange(0.0, 0.5, dt)
@@ -520,7 +520,7 @@ def test_the_band_is_judged_where_the_scenario_says_it_must_hold():
     of recovery after an event at 0.295 s (not after one at 0.25 s), or a band of +-4 %, or does not require the
     band; failed again with the band required from 0.35 s but the excursion moved to 0.40 s."""
     from schemas.scenario import AcceptanceConfig
-    from service.sim import compute_metrics
+    from service.metrics import compute_metrics
 
     v_ref, dt = 80.0, 1e-4
     t = np.arange(0.0, 0.5, dt)
