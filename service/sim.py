@@ -8,7 +8,6 @@ forms it from the neighbour's messages (P^{r,in} = -P_l, dP^{r,in}/dt = -dP_l/dt
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,7 +19,7 @@ from service.core.types import Incoming
 from service.forecast import OutgoingForecast, forecast_outgoing
 from service.metrics import compute_metrics
 from service.plant.profiles import Profile
-from service.plant.rlc import CommandChannel, CommandSchedule, RLCPlant, Sensor, load_current
+from service.plant.rig import RigModel
 
 I_DIVERGED_A = 1e4  # a source current beyond this (A) is a divergence whatever v does
 
@@ -59,25 +58,18 @@ class SimResult:
     forecasts: list[OutgoingForecast] = field(default_factory=list)  # per window, when feasibility.forecast is on
 
 
-def substeps(period_s: float, plant_step_s: float) -> int:
-    return max(1, math.ceil(period_s / plant_step_s - 1e-9))
-
-
 def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None) -> SimResult:
     """Closed loop offline. impl: the core implementation (core.make_core; default: compiled if built)."""
     tm = scn.timing
     T = 1.0 / tm.control_rate_hz
-    n_sub = substeps(T, tm.plant_step_s)
     N = int(round(tm.duration_s / T))
     check_trace_size(N, len(TRACE_FIELDS), scn.name)
-    load = Profile(scn.load, scn.base_dir)
-    dist = Profile(scn.disturbance, scn.base_dir) if scn.disturbance is not None else None
-    plant = RLCPlant(scn.plant, load, dist, impl or "auto")
-    sensor = Sensor(scn.sensor, scn.seed)
+    # the plant side (plant, load, sensor, loop delay, command loss/lateness/outages, schedule) as the lockstep
+    # stand-in runs it
+    rig = RigModel.of_scenario(scn, impl or "auto")
+    plant, load, dist = rig.plant, rig.load, rig.dist
+    sample, command, advance = rig.sample, rig.command, rig.advance
     core = make_core(scn.controller, scn.model, T, tm.delay_samples, impl)
-    delay: deque[tuple[float, float]] = deque([(0.0, 0.0)] * tm.delay_samples)
-    sched = CommandSchedule(0)  # after the delay line, as the lockstep HIL plant: a lost command never arrives
-    channel = CommandChannel(tm, [scn.seed])  # loss, lateness, outages on the way to the plant
 
     feas = FeasibilityMonitor(scn.feasibility.window_s)
     tp = tau_prime(scn.model.L_H, scn.model.R_ohm, effective_gain(scn.controller, scn.model))
@@ -106,18 +98,12 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     diverged = None  # (t, why) once it diverged
     for k in range(N):
         t = plant.t
-        P_l = load.value(t)
-        i2 = load_current(P_l, plant.v, plant.v_min)
-        s = sensor.measure(k, t, plant.i, plant.v, plant.u, i2)
+        s = sample(k)
+        P_l, i2 = rig.P_l, rig.i_load
         inc.P_r_in = -P_l
         inc.P_r_in_dot = -load.rate(t)
         out = core.step(s, inc)
-        if tm.delay_samples:
-            delay.append((out.du_dt, out.du_dt_next))
-            cmd = delay.popleft()
-        else:
-            cmd = (out.du_dt, out.du_dt_next)
-        r_apply = channel.deliver(sched, k, t, cmd)
+        r_apply = command(k, out.du_dt, out.du_dt_next)
         est = out.est
         if t >= t_warm:
             feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
@@ -127,7 +113,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
              R_true * pi * pi - (pu + um) * pi, y_ref_of(-P_l, pv), out.y_z, out.y_ref,
              est.E, est.E_t, est.p, est.y_z_balance, est.eta, est.P_r_out_port, est.Qdot_r_out_port,
              out.z_out0, out.z_out1, inc.P_r_in, inc.P_r_in_dot))
-        plant.advance(r_apply, T, n_sub)
+        advance()
         if len(rows) == CHUNK:
             cols[:, done:done + CHUNK] = np.asarray(rows, dtype=float).T
             done += CHUNK

@@ -18,8 +18,9 @@ import numpy as np
 from schemas.network import EventConfig, NetworkScenario
 from service.core.types import Sample
 from service.plant.network import NetworkPlant
+from service.plant.rig import substeps
 from service.plant.rlc import CommandChannel, CommandSchedule, Sensor
-from service.sim import divergence_why, substeps
+from service.sim import divergence_why
 
 
 class NetworkRigModel:

@@ -259,8 +259,8 @@ def _skipping_loop(renumber: bool, d: int = 2, n: int = 600):
     renumber: give the core consecutive numbers instead of the plant's (what a tick-indexed history sees).
     Returns the largest |u_pred - u(t_{k+d})| and |i_pred - i(t_{k+d})| over the ticks."""
     from service.plant.profiles import Profile
+    from service.plant.rig import substeps
     from service.plant.rlc import RLCPlant, load_current
-    from service.sim import substeps
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml",
                         ["timing.control_rate_hz=1000.0", "controller.K_per_s=1500.0", "timing.plant_step_s=5e-5",
@@ -314,8 +314,8 @@ def _late_burst_run(late_detect_V: float, observer_gain: float = 0.0) -> tuple[f
 
     from service.core import make_core
     from service.plant.profiles import Profile
+    from service.plant.rig import substeps
     from service.plant.rlc import RLCPlant, Sensor, load_current
-    from service.sim import substeps
 
     scn = load_scenario(Path(__file__).parents[2] / "clients" / "embedded" / "demo.toml",
                         ['controller.kind="fblc"', "timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5",
