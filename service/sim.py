@@ -68,7 +68,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
     # stand-in runs it
     rig = RigModel.of_scenario(scn, impl or "auto")
     plant, load, dist = rig.plant, rig.load, rig.dist
-    sample, command, advance = rig.sample, rig.command, rig.advance
+    sample, command, advance = rig.sample, rig.path.command, rig.advance
     core = make_core(scn.controller, scn.model, T, tm.delay_samples, impl)
 
     feas = FeasibilityMonitor(scn.feasibility.window_s)
@@ -103,7 +103,7 @@ def run(scn: Scenario, stop_on_divergence: bool = True, impl: str | None = None)
         inc.P_r_in = -P_l
         inc.P_r_in_dot = -load.rate(t)
         out = core.step(s, inc)
-        r_apply = command(k, out.du_dt, out.du_dt_next)
+        r_apply = command(k, t, out.du_dt, out.du_dt_next)
         est = out.est
         if t >= t_warm:
             feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)

@@ -29,9 +29,60 @@ def substeps(period_s: float, plant_step_s: float) -> int:
     return max(1, math.ceil(period_s / plant_step_s - 1e-9))
 
 
+class CommandPath:
+    """One source's commands on their way to its converter: the loop delay, timing's command disturbances and the
+    command schedule (pure: no clock, no I/O). RigModel has one, NetworkRigModel one per source.
+
+    Lockstep and offline (``command``): the answer to sample k (None: none came) goes through a d-sample delay line
+    first, then the disturbances (``channel``: loss, lateness, outages; None for none), then the schedule takes each
+    command for its own period (a lost one never arrives: its predecessor's plan, else a hold). Realtime (``arrive``,
+    ``take``): commands come when they come, the schedule's own delay (apply_delay samples) says which acts over a
+    period, and a further d-sample delay line of rates follows it (a stand-in plant's extra actuation delay)."""
+
+    def __init__(self, d: int, channel: CommandChannel | None = None, realtime: bool = False, apply_delay: int = 0):
+        self.d = d
+        self.channel = channel
+        self.delay: deque = deque([0.0] * d if realtime else [(0.0, 0.0)] * d)
+        self.sched = CommandSchedule(apply_delay if realtime else 0)
+        self.r = 0.0  # the rate applied over the current period (V/s)
+
+    def command(self, k: int, t: float, du: float | None, du_next: float = 0.0) -> float:
+        """The answer to sample k (du/dt, planned du/dt V/s; None: none came) at plant time t (s): the rate the
+        converter applies over period k (V/s)."""
+        got = None if du is None else (du, du_next)
+        if self.d:
+            q = self.delay
+            q.append(got)
+            got = q.popleft()
+        sched = self.sched
+        if self.channel is not None:
+            self.r = self.channel.deliver(sched, k, t, got)
+        else:
+            if got is not None:
+                sched.arrive(k, *got)
+            self.r = sched.take(k)[0]
+        return self.r
+
+    def arrive(self, seq: int, du: float, du_next: float) -> None:
+        """Realtime: the answer to sample seq came."""
+        self.sched.arrive(seq, du, du_next)
+
+    def take(self, k: int) -> tuple[float, float, bool]:
+        """Realtime: (the rate applied over period k after the delay line, the schedule's rate for k, whether that
+        is the command meant for k rather than a plan or a hold)."""
+        r, fresh = self.sched.take(k)
+        if self.d:
+            q = self.delay
+            q.append(r)
+            self.r = q.popleft()
+        else:
+            self.r = r
+        return self.r, r, fresh
+
+
 class RigModel:
-    """See the module docstring. ``plant`` is the RLCPlant, ``load`` / ``dist`` its profiles, ``sched`` the command
-    schedule, ``r`` the rate applied over the current period (V/s)."""
+    """See the module docstring. ``plant`` is the RLCPlant, ``load`` / ``dist`` its profiles, ``path`` the
+    commands' way to the converter (CommandPath) and ``sched`` its schedule."""
 
     def __init__(self, plant, load, disturbance, sensor, seed: int, base_dir, T: float, plant_step_s: float,
                  delay_samples: int, impl: str = "auto", timing=None, realtime: bool = False,
@@ -49,13 +100,11 @@ class RigModel:
         self.n_sub = substeps(T, plant_step_s)
         self.d = delay_samples
         self.realtime = realtime
-        # lockstep and offline: the delay line first, then the schedule takes each command for its own period; a
-        # lost command never arrives. Realtime: the schedule's own delay, then the plant's extra d samples of rate
-        self.delay: deque = deque([0.0] * delay_samples if realtime else [(0.0, 0.0)] * delay_samples)
-        self.sched = CommandSchedule(apply_delay_samples if realtime else 0)
-        self.channel = CommandChannel(timing, [seed]) if timing is not None else None
+        self.path = CommandPath(delay_samples, CommandChannel(timing, [seed]) if timing is not None else None,
+                                realtime, apply_delay_samples)
+        self.sched = self.path.sched
+        self.arrive, self.take = self.path.arrive, self.path.take
         self.P_l = self.i_load = 0.0
-        self.r = 0.0
 
     @classmethod
     def of_scenario(cls, scn, impl: str = "auto") -> RigModel:
@@ -75,36 +124,8 @@ class RigModel:
     def command(self, k: int, du: float | None, du_next: float = 0.0) -> float:
         """The answer to sample k (None: none came) through the loop delay, the command disturbances and the
         schedule: the rate the converter applies over period k (V/s)."""
-        got = None if du is None else (du, du_next)
-        if self.d:
-            q = self.delay
-            q.append(got)
-            got = q.popleft()
-        sched = self.sched
-        if self.channel is not None:
-            self.r = self.channel.deliver(sched, k, self.plant.t, got)
-        else:
-            if got is not None:
-                sched.arrive(k, *got)
-            self.r = sched.take(k)[0]
-        return self.r
-
-    def arrive(self, seq: int, du: float, du_next: float) -> None:
-        """Realtime: the answer to sample seq came."""
-        self.sched.arrive(seq, du, du_next)
-
-    def take(self, k: int) -> tuple[float, float, bool]:
-        """Realtime: (the rate applied over period k after the plant's extra delay, the schedule's rate for k,
-        whether that is the command meant for k rather than a plan or a hold)."""
-        r, fresh = self.sched.take(k)
-        if self.d:
-            q = self.delay
-            q.append(r)
-            self.r = q.popleft()
-        else:
-            self.r = r
-        return self.r, r, fresh
+        return self.path.command(k, self.plant.t, du, du_next)
 
     def advance(self) -> None:
         """Integrate one control period at the rate ``r``."""
-        self.plant.advance(self.r, self.T, self.n_sub)
+        self.plant.advance(self.path.r, self.T, self.n_sub)
