@@ -349,3 +349,66 @@ def network_metrics(res, diverged_at: float | None, ctls, unsupplied: dict | Non
         m["events"].append(_event_metrics(res, ev, t1, band, carry_W, P_s, terminal_dev))
     m.update(verdict(m, acc))
     return m
+
+
+# the offline issue's acceptance limits, checked by energyctl demo --network on the live run and on its logs
+LIMITS = {"step_bus_back_s": 0.150, "step_bus_min_V": 75.5, "bus_ss_dev_pct": 1.0, "sharing_pp": 2.0,
+          "trip_bus_back_s": 0.200, "trip_bus_min_V": 74.0, "trip_carried_pct": 95.0, "inrush_A": 20.0,
+          "bus_move_V": 2.0}
+
+
+def carried_by_others_pct(res, target: str, t1: float) -> float | None:
+    """After source ``target`` tripped: the share (%) of what all sources deliver that the others carry, over the
+    SETTLED_S before t1 (None: no samples there, or no such source)."""
+    sel = (res.t >= t1 - SETTLED_S) & (res.t < t1)
+    if not sel.any() or target not in res.sources:
+        return None
+    total = sum(abs(float(np.mean(res.sources[s]["P"][sel]))) for s in res.sources) or 1.0
+    return 100.0 * (1.0 - abs(float(np.mean(res.sources[target]["P"][sel]))) / total)
+
+
+def acceptance_checks(res) -> list[dict]:
+    """Each check of the network acceptance criteria on a run: {"check", "value", "limit", "ok"}. After a load step:
+    every bus back within +-2 % within 150 ms and never below 75.5 V; after a trip: back within 200 ms, never below
+    74 V, and the sources left carry >= 95 % of what is delivered; a connect: accepted, line inrush <= 20 A, bus move
+    <= 2 V; steady bus deviation <= 1 %, sharing error <= 2 percentage points; no divergence. res: a NetworkResult
+    with its metrics (an offline run's, or a live rig's log read back)."""
+    m, L = res.metrics, LIMITS
+    out = [{"check": "no divergence", "value": m["diverged_at_s"], "limit": None, "ok": not m["diverged"]}]
+
+    def add(name: str, value, limit, ok: bool) -> None:
+        out.append({"check": name, "value": value, "limit": limit, "ok": bool(ok)})
+
+    T = 1.0 / res.net.timing.control_rate_hz
+    ends = sorted({e["t_s"] for e in m["events"]})
+    for e in m["events"]:
+        what = f"{e['kind']} {e['target']} at {e['t_s']:g} s"
+        back = worst_back(e["bus_back_in_band_s"].values())
+        low = min((v for v in e["bus_min_V"].values() if v is not None), default=None)
+        if e["kind"] in ("load", "trip"):
+            key = "step" if e["kind"] == "load" else "trip"
+            add(f"{what}: buses back within ±2 % (s)", back, L[f"{key}_bus_back_s"],
+                back is not None and back <= L[f"{key}_bus_back_s"])
+            add(f"{what}: lowest bus voltage (V)", low, L[f"{key}_bus_min_V"],
+                low is not None and low >= L[f"{key}_bus_min_V"])
+        if e["kind"] == "trip":
+            t1 = next((x for x in ends if x > e["t_s"] + 1e-9), float(res.t[-1]) + T)
+            rest = carried_by_others_pct(res, e["target"], t1)
+            if rest is not None:
+                add(f"{what}: the other sources carry (% of the load)", rest, L["trip_carried_pct"],
+                    rest >= L["trip_carried_pct"])
+        elif e["kind"] in ("connect", "close"):
+            add(f"{what}: accepted", e["accepted"], True, e["accepted"])
+            if e["accepted"]:
+                add(f"{what}: line inrush (A)", e.get("inrush_A"), L["inrush_A"],
+                    e.get("inrush_A") is not None and e["inrush_A"] <= L["inrush_A"])
+                moves = [v for v in (e.get("bus_move_V") or {}).values() if v is not None]
+                mv = max(moves, default=None)
+                add(f"{what}: bus move (V)", mv, L["bus_move_V"], mv is not None and mv <= L["bus_move_V"])
+    for b, d in m["buses"].items():
+        add(f"bus {b}: steady deviation (%)", d["ss_dev_pct"], L["bus_ss_dev_pct"],
+            d["ss_dev_pct"] is not None and d["ss_dev_pct"] <= L["bus_ss_dev_pct"])
+    errs = [abs(s["sharing_error_pp"]) for s in m["sources"].values() if s["sharing_error_pp"] is not None]
+    worst = max(errs, default=None)
+    add("steady sharing error (pp)", worst, L["sharing_pp"], worst is not None and worst <= L["sharing_pp"])
+    return out

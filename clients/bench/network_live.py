@@ -17,8 +17,7 @@ import numpy as np
 
 from clients.netlive import LiveNetwork
 from clients.peers.netrig import read_rig_log
-from service.metrics import BAND_SETTLE, back_in_band, worst_back
-from service.network.netsim import acceptance_checks
+from service.metrics import BAND_SETTLE, acceptance_checks, back_in_band, worst_back
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "clients" / "embedded" / "network-demo.toml"
@@ -96,8 +95,7 @@ def plug_in(work: Path, realtime: bool, sets: list[str]) -> dict:
     hs = json.loads((live.workdir / "S3.status.json").read_text())["network"]["handshake"]
     return {"asked_at_s": 0.8, "closed_at_s": ev["t_s"], "handshake_s": ev["t_s"] - 0.8,
             "requests": hs["requests"], "forecast_ms": (hs["last"] or {}).get("forecast_ms"),
-            "bus_back_in_band_s": max(ev["bus_back_in_band_s"].values()) if None not in
-            ev["bus_back_in_band_s"].values() else None, "inrush_A": ev.get("inrush_A"),
+            "bus_back_in_band_s": worst_back(ev["bus_back_in_band_s"].values()), "inrush_A": ev.get("inrush_A"),
             "bus_move_V": max((ev.get("bus_move_V") or {}).values(), default=None),
             "checks_failed": [c["check"] for c in acceptance_checks(rig) if not c["ok"]]}
 
