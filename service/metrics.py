@@ -317,26 +317,47 @@ def network_metrics(res, diverged_at: float | None, ctls, unsupplied: dict | Non
     v_nom = net.nominal_v_V
     n = len(t)
     T = 1.0 / net.timing.control_rate_hz
-    tail = t >= (t[-1] - 0.1 * (t[-1] - t[0]) if n else 0.0)  # the last 10 %
-    names = list(net.sources)
-    steady_P = {s: float(np.mean(res.sources[s]["P"][tail])) if n else 0.0 for s in names}
     carry_W = max(net.layer.idle_power_W, CARRY_MIN_W)
-    carrying = [s for s in names if abs(steady_P[s]) >= carry_W]
-    total_P = sum(steady_P[s] for s in carrying) or 1.0
-    total_share = sum(net.sources[s].share for s in carrying) or 1.0
+    tail, steady_P, carrying, total_P, total_share = _steady_sharing(res, carry_W)
     m: dict = {"diverged": diverged_at is not None, "diverged_at_s": diverged_at, "diverged_why": diverged_why,
                "t_end": float(t[-1]) if n else 0.0, "unsupplied_s": dict(unsupplied or {}),
                **hold_metrics(t, np.array([np.abs(v - v_nom) / v_nom for v in res.buses.values()])
                               .reshape(len(res.buses), n),
                               band_must_hold(t, acc, [e.t for e in res.events]), band, list(res.buses)),
                "sources": {s: _source_metrics(res, s, tail, steady_P, carrying, total_P, total_share,
-                                              ctls[j] if ctls else None, v_nom, T) for j, s in enumerate(names)},
-               "buses": {}, "events": []}
+                                              ctls[j] if ctls else None, v_nom, T) for j, s in enumerate(net.sources)},
+               "buses": _bus_metrics(res, T),
+               "events": _events_metrics(res, band, carry_W, T)}
+    m.update(verdict(m, acc))
+    return m
+
+
+def _steady_sharing(res, carry_W: float) -> tuple:
+    """Over the last 10 % of the run: (that mask, each source's mean power W, the sources carrying at least
+    carry_W, their total power W and total share (1 where none))."""
+    t, n = res.t, len(res.t)
+    tail = t >= (t[-1] - 0.1 * (t[-1] - t[0]) if n else 0.0)
+    steady_P = {s: float(np.mean(res.sources[s]["P"][tail])) if n else 0.0 for s in res.net.sources}
+    carrying = [s for s in res.net.sources if abs(steady_P[s]) >= carry_W]
+    total_P = sum(steady_P[s] for s in carrying) or 1.0
+    total_share = sum(res.net.sources[s].share for s in carrying) or 1.0
+    return tail, steady_P, carrying, total_P, total_share
+
+
+def _bus_metrics(res, T: float) -> dict:
+    """Per bus: its lowest and highest voltage (V) and its largest steady deviation from nominal (%, over
+    steady_windows)."""
+    t, n, v_nom = res.t, len(res.t), res.net.nominal_v_V
     steady = steady_windows(t, (e.t for e in res.events), T)
-    for b, v in res.buses.items():
-        m["buses"][b] = {"v_min": float(v.min()) if n else None, "v_max": float(v.max()) if n else None,
-                         "ss_dev_pct": max((abs(float(np.mean(v[s])) - v_nom) / v_nom * 100 for s in steady),
-                                           default=None)}
+    return {b: {"v_min": float(v.min()) if n else None, "v_max": float(v.max()) if n else None,
+                "ss_dev_pct": max((abs(float(np.mean(v[s])) - v_nom) / v_nom * 100 for s in steady), default=None)}
+            for b, v in res.buses.items()}
+
+
+def _events_metrics(res, band: float, carry_W: float, T: float) -> list[dict]:
+    """Each event's entry (_event_metrics), each judged until the next event (or the end)."""
+    t, n, v_nom = res.t, len(res.t), res.net.nominal_v_V
+    names = list(res.net.sources)
     # the sharing over time (powers smoothed over SHARE_SMOOTH_S); each terminal against its own reference v_ref
     # (which the layer moves: where the source's law takes it; with the layer off that is nominal)
     k_smooth = max(1, int(round(SHARE_SMOOTH_S / T)))
@@ -344,11 +365,11 @@ def network_metrics(res, diverged_at: float | None, ctls, unsupplied: dict | Non
     v_refs = {s: res.sources[s].get("v_ref", np.full(n, v_nom)) for s in names}
     terminal_dev = {s: np.abs(res.sources[s]["v"] - v_refs[s]) / v_refs[s] for s in names}
     ends = sorted({e.t for e in res.events})
+    out = []
     for ev in res.events:
         t1 = next((x for x in ends if x > ev.t + 1e-9), float(t[-1]) + T if n else math.inf)
-        m["events"].append(_event_metrics(res, ev, t1, band, carry_W, P_s, terminal_dev))
-    m.update(verdict(m, acc))
-    return m
+        out.append(_event_metrics(res, ev, t1, band, carry_W, P_s, terminal_dev))
+    return out
 
 
 # the offline issue's acceptance limits, checked by energyctl demo --network on the live run and on its logs
