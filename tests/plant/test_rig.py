@@ -192,3 +192,30 @@ def test_the_stand_in_plant_built_from_a_scenario_is_sims_rig():
         a.advance()
         b.advance()
     assert (a.plant.i, a.plant.v, a.plant.u) == (b.plant.i, b.plant.v, b.plant.u)
+
+
+def test_the_network_rig_puts_each_sources_commands_through_the_same_path():
+    """NetworkRigModel holds one CommandPath per source: with losses, lateness and an outage, the rates equal those
+    of its old inline lists (a delay line, a CommandChannel seeded [seed, j] and a CommandSchedule per source)."""
+    from schemas.network import load_network
+    from service.network.netrig import NetworkRigModel
+
+    net = load_network(ROOT / "scenarios" / "network" / "two-source.toml",
+                       ["timing.command_loss=0.2", "timing.command_late=0.1", "timing.command_outages=[[0.01, 0.005]]"])
+    rig = NetworkRigModel(net)
+    tm, d, ns = net.timing, rig.d, len(rig.names)
+    assert d > 0
+    delays = [deque([(0.0, 0.0)] * d) for _ in range(ns)]
+    scheds = [CommandSchedule(0) for _ in range(ns)]
+    channels = [CommandChannel(tm, [net.seed, j]) for j in range(ns)]
+    rng = np.random.default_rng(11)
+    for k in range(300):
+        rig.plant.t = k * rig.T
+        for j in range(ns):
+            du = None if rng.random() < 0.1 else float(rng.normal(0, 1e3))
+            dn = float(rng.normal(0, 1e3))
+            delays[j].append(None if du is None else (du, dn))
+            old = channels[j].deliver(scheds[j], k, rig.plant.t, delays[j].popleft())
+            assert rig.command(j, k, du, dn) == old
+            assert rig.r[j] == old
+    assert [s.counts for s in rig.scheds] == [s.counts for s in scheds]
