@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 
 import numpy as np
 
+from service.metrics import max_dev_pct, worst_back
 from service.metrics import step_metrics as service_step_metrics
-from service.metrics import worst_back
 
 LEVELS_W = (-2400.0, -1200.0, -300.0, 0.0, 300.0, 1200.0, 2400.0)
 TIMINGS = ((10_000.0, 3), (1_000.0, 1), (1_000.0, 2))  # (control rate Hz, loop delay samples)
@@ -97,8 +98,7 @@ def net_worker(job: tuple[str, list[str]]) -> dict:
     res = run_network(net)
     m = res.metrics
     v_nom = net.nominal_v_V
-    tail = res.t >= res.t[-1] - TAIL_S
-    steady = max(float(np.abs(v[tail] - v_nom).max()) / v_nom * 100 for v in res.buses.values())
+    steady = max(max_dev_pct(res.t, v, res.t[-1] - TAIL_S, math.inf, v_nom) for v in res.buses.values())
     step = [e for e in m["events"] if e["kind"] == "load" and abs(e["t_s"] - NET_STEP_S) < 1e-9]
     backs = [b for e in step for b in e["bus_back_in_band_s"].values()]
     errs = [abs(s["sharing_error_pp"]) for s in m["sources"].values() if s["sharing_error_pp"] is not None]
