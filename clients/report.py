@@ -291,7 +291,8 @@ def network_series(path: str | Path) -> dict:
 def network_report(log: dict, out: Path, plt, daemon_logs: list[str] = ()) -> dict:
     """Figures of a network log: bus voltages with their band and the events, source powers and shares, each
     source's incoming interaction variable against its feasibility range per window, the topology. A live rig's log
-    holds the plant; its sources' daemon logs (daemon_logs) hold what they followed and the ranges they were sent."""
+    holds the plant; its sources' daemon logs (daemon_logs) hold what they followed and the ranges they were sent
+    (the coordinator's window messages)."""
     from schemas.network import NetworkScenario
 
     net = NetworkScenario.model_validate(log["meta"]["scenario"])
@@ -299,8 +300,9 @@ def network_report(log: dict, out: Path, plt, daemon_logs: list[str] = ()) -> di
     for p in daemon_logs:
         more = network_series(p)
         for e, leaves in more["elements"].items():
-            data["elements"].setdefault(e, {}).update({k: v for k, v in leaves.items() if k in ("z_in", "alloc")})
-            a = leaves.get("alloc")
+            data["elements"].setdefault(e, {}).update({k: v for k, v in leaves.items()
+                                                       if k in ("z_in", "window", "alloc")})
+            a = leaves.get("window", leaves.get("alloc"))  # (alloc: an older run's per-sample allocations)
             if a is not None and "window" in a:  # the ranges the coordinator sent, one per window
                 seen = set()
                 for w, has, lo, hi in zip(a["window"], a["has_range"], a["Z_P_min"], a["Z_P_max"], strict=True):

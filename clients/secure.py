@@ -165,7 +165,7 @@ def network_roles(acl: _Acl, net, rig: str, coordinator: str, users: set[str] | 
     if want(coordinator):
         acl.role(coordinator, [
             *acl.subscribes("the grid sample", [f"{P}/{rig}/grid"]),
-            *acl.publishes("allocations", [f"{P}/{s}/alloc" for s in sources]),
+            *acl.publishes("the layer's window messages", [f"{P}/{s}/window" for s in sources]),
             *acl.serves("status and the plug-in handshake",
                         [f"{P}/{coordinator}/status", f"{P}/{coordinator}/connect"]),
             *acl.asks("the rig's breakers and the sources' configs", [f"{P}/{rig}/breaker"]
@@ -176,8 +176,8 @@ def network_roles(acl: _Acl, net, rig: str, coordinator: str, users: set[str] | 
             continue
         ends = [f"{P}/{ln}/z/{s}" for ln, ends in lines.items() if s in ends]
         acl.role(s, [*acl.publishes("commands and interaction", [f"{P}/{s}/cmd", f"{P}/{s}/z"]),
-                     *acl.subscribes("measurements, allocations and line ends",
-                                     [f"{P}/{s}/meas", f"{P}/{s}/alloc", *ends]),
+                     *acl.subscribes("measurements, the grid sample, window messages and line ends",
+                                     [f"{P}/{s}/meas", f"{P}/{rig}/grid", f"{P}/{s}/window", *ends]),
                      *acl.serves("status and config", [f"{P}/{s}/status", f"{P}/{s}/config", f"{P}/{s}/config/set"]),
                      *acl.asks("to connect", [f"{P}/{coordinator}/connect"]),
                      *acl.token(s), *acl.watch_liveliness()])

@@ -25,6 +25,7 @@ from schemas.messages import (
     Interaction,
     LayerSource,
     LayerTick,
+    LayerWindow,
     LoopRecord,
     Measurement,
     Plant,
@@ -206,6 +207,7 @@ EST = Codec(Estimate, 0x51)
 LOOP = Codec(LoopRecord, 0x4C)
 PLANT = Codec(Plant, 0x50)  # only recorded (the HIL plant's true state), never sent
 ALLOC = Codec(Allocation, 0xA1)
+WINDOW = Codec(LayerWindow, 0xA2)  # the layer per window to each source (its P^{r,in} it forms itself)
 LAYER_SRC = Codec(LayerSource, 0x4D)  # only recorded (the coordinator's inputs and answers per source)
 LAYER_TICK = Codec(LayerTick, 0x4E)  # only recorded
 
@@ -258,4 +260,4 @@ GRID = GridCodec()
 
 # the codec of each message model that has a binary form (energyctl.Event has none: JSON text in recordings only)
 BY_MODEL: dict[type[BaseModel], Codec] = {c.model: c for c in (MEAS, CMD, Z, TICK_IN, EST, LOOP, PLANT, ALLOC,
-                                                                    LAYER_SRC, LAYER_TICK)}
+                                                                    WINDOW, LAYER_SRC, LAYER_TICK)}

@@ -171,12 +171,13 @@ class LoopConfig(Strict):
 
 
 class NetworkRole(Strict):
-    """A source daemon's part in a live network (``energyctl run --network``): where its allocation comes from, the
-    line ends at its terminal it shows as neighbours, and when it asks to connect."""
+    """A source daemon's part in a live network (``energyctl run --network``): what it forms its share from (the
+    rig's grid sample, the network's shares), where its window messages come from, the line ends at its terminal it
+    shows as neighbours, and when it asks to connect."""
 
     network: str = Field(description="the network scenario's name")
-    coordinator: str = Field(default="coordinator", description="the coordinator's id: allocations come on "
-                                                                "PREFIX/ID/alloc, connect requests go to "
+    coordinator: str = Field(default="coordinator", description="the coordinator's id: its window messages come "
+                                                                "on PREFIX/ID/window, connect requests go to "
                                                                 "PREFIX/COORDINATOR/connect")
     lines: list[str] = Field(default=[], description="the lines at its terminal: neighbours on PREFIX/LINE/z/ID")
     idle_power_W: WattNonNeg = Field(default=30.0, description="below this |P^{r,in}| (and "
@@ -189,16 +190,16 @@ class NetworkRole(Strict):
         default=None, description="in fallback it idles below this |own terminal power| instead, W (None: "
                                   "idle_power_W)")
     fallback: Literal["last-allocation", "own-terminal"] = Field(
-        default="last-allocation", description="a stale allocation: keep its last P^{r,in} (plus the change of its own "
-                                               "terminal's power since; the nested law), or follow its own terminal's "
-                                               "power alone")
+        default="last-allocation", description="a stale grid sample: keep its last P^{r,in} (plus the change of its "
+                                               "own terminal's power since; the nested law), or follow its own "
+                                               "terminal's power alone")
     resume_ramp_s: Secs = Field(default=0.0, description="after a fallback, from its own "
-                                                                                  "terminal's power to the allocation "
+                                                                                  "terminal's power to its share "
                                                                                   "linearly over this long, s")
-    stale_s: SecsPos = Field(default=0.01, description="an allocation older than this (sample "
+    stale_s: SecsPos = Field(default=0.01, description="a grid sample older than this (sample "
                                                                              "time) is stale: the source falls back "
-                                                                             "to its own terminal power, s")
-    extrapolate_s: Secs = Field(default=0.002, description="a late allocation is carried "
+                                                                             "(its last share, or its own terminal), s")
+    extrapolate_s: Secs = Field(default=0.002, description="a late P^{r,in} is carried "
                                                                                     "forward along its rate by at "
                                                                                     "most this, s")
     connect_at_s: Secs | None = Field(
@@ -206,17 +207,46 @@ class NetworkRole(Strict):
                                   "connect (the plug-in handshake; again after connect_retry_s when refused or "
                                   "tripped); none: it never asks")
     connected_at_start: bool = Field(default=False, description="the scenario has it connected from the start: a "
-                                     "daemon whose first allocation shows its breaker open (restarted after a "
+                                     "daemon whose first grid sample shows its breaker open (restarted after a "
                                      "trip) asks to connect by itself, connect_at_s unset")
     connect_retry_s: SecsPos = Field(default=0.5, description="sample time between two "
                                                                                     "connect requests, s")
-    v_ref_min_V: Volt | None = Field(default=None, description="an allocation whose v_ref "
+    v_ref_min_V: Volt | None = Field(default=None, description="a window message whose v_ref "
                                                                                       "is below this is refused "
                                                                                       "(counted), V")
-    v_ref_max_V: Volt | None = Field(default=None, description="an allocation whose v_ref "
+    v_ref_max_V: Volt | None = Field(default=None, description="a window message whose v_ref "
                                                                                       "is above this is refused, V")
-    P_max_W: WattPos = Field(default=1e6, description="an allocation whose |P^{r,in}| is above "
-                                                                            "this is refused (counted), W")
+    P_max_W: WattPos = Field(default=1e6, description="a grid sample whose power at a terminal |v i_out| is above "
+                                                      "this is refused (counted), W")
+    # what it shares with (service.network.layer.Sharing): it forms P^{r,in} = -alpha_s sum_k P_k itself each sample
+    # from the rig's grid sample (PREFIX/RIG/grid); the coordinator sends v_ref and Z^{r,in} per window
+    rig: str = Field(default="rig", description="the rig's id: its grid sample PREFIX/RIG/grid is what the sharing is "
+                                                "formed from")
+    index: Annotated[int, Field(ge=0, le=65535)] = Field(
+        default=0, description="its position among the network's sources (the grid sample's order)")
+    shares: list[Annotated[float, Field(gt=0, le=1e6)]] = Field(
+        default=[1.0], description="every source's share of the load, in the network's order (layer: the sources' "
+                                   "share)")
+    sources_connected: list[bool] = Field(default=[True], description="which sources start connected, in the "
+                                                                      "network's order")
+    sharing: Literal["none", "live-sum"] = Field(
+        default="live-sum", description="the layer's mode: none: its own lines' power; live-sum: its share of all "
+                                        "connected sources' line powers")
+    carry_power_W: WattNonNeg = Field(default=0.0, description="a source whose lines draw less than this |power| is "
+                                                               "left out of the live sum (layer.idle_power_W), W")
+    plug_in_ramp_s: Secs = Field(default=0.0, description="a source that connects takes its share linearly over this "
+                                                          "long (layer.plug_in_ramp_s), s")
+    window_s: SecsPos = Field(default=0.05, description="the layer's window (layer.window_s): a lockstep source waits "
+                                                        "for the coordinator's window message at each window's "
+                                                        "start, s")
+
+    @model_validator(mode="after")
+    def _index_in_shares(self):
+        if len(self.sources_connected) != len(self.shares):
+            raise ValueError(f"sources_connected: {len(self.sources_connected)} entries for {len(self.shares)} shares")
+        if self.index >= len(self.shares):
+            raise ValueError(f"index: {self.index} is not below the {len(self.shares)} sources")
+        return self
 
 
 class ComponentConfig(Named):
@@ -229,9 +259,9 @@ class ComponentConfig(Named):
         default=2, description="loop delay the core predicts over unless controller.delay_compensation_samples "
                                "(samples)")
     neighbours: list[str] = Field(default=[], description="ids whose interaction variables form P^{r,in}")
-    network: NetworkRole | None = Field(default=None, description="a source on a live network: its P^{r,in} comes "
-                                                                  "from the coordinator's allocation, not from "
-                                                                  "neighbours (energyctl run --network)")
+    network: NetworkRole | None = Field(default=None, description="a source on a live network: its P^{r,in} is its "
+                                                                  "share formed from the rig's grid sample, not "
+                                                                  "from neighbours (energyctl run --network)")
     core: Literal["auto", "c", "python"] = Field(
         default="auto", description="the control core's implementation: 'c' the compiled twin (the daemon refuses "
                                     "to start without it), 'python' the reference (the same bits, about 25x the CPU "

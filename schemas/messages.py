@@ -134,7 +134,8 @@ class Plant(Msg):
 
 
 class Allocation(Msg):
-    """The interconnection layer's word to one network source for one sample (topic ``.../<source>/alloc``, from the
+    """No longer sent (decision 0042: LayerWindow, the source forming its share itself); older runs' logs carry it.
+    The interconnection layer's word to one network source for one sample (topic ``.../<source>/alloc``, from the
     coordinator): what it is to deliver, its voltage reference, its breaker as the rig reported it, and its
     feasibility range Z^{r,in} for the window."""
 
@@ -145,6 +146,28 @@ class Allocation(Msg):
     v_ref_V: float = Field(description="the source's voltage reference, as the layer last moved it, V")
     connected: bool = Field(description="its breaker was closed at that sample")
     window: Index = Field(description="the layer's window the range is for")
+    has_range: bool = Field(description="a range is set for the window (false: the source is not connected)")
+    Z_P_min: float = Field(description="Z^{r,in}: lower end of the incoming power range, W")
+    Z_P_max: float = Field(description="upper end of the incoming power range, W")
+    Z_Qdot_min: float = Field(description="lower end of the incoming reactive-power-rate range, W/s")
+    Z_Qdot_max: float = Field(description="upper end of that range, W/s")
+
+
+class LayerWindow(Msg):
+    """The interconnection layer's word to one network source for a window (topic ``.../<source>/window``, from the
+    coordinator): sent at the first grid sample it takes, at each window's end (for the next window) and when a
+    breaker changes. The source forms P^{r,in} = -alpha_s sum_k P_k itself every sample from the rig's grid sample
+    (service.network.layer.Sharing); this carries what changes per window: its v_ref, its range Z^{r,in}, the
+    breaker as the coordinator saw it and its share alpha_s then. A source without it keeps the last one."""
+
+    seq: Index = Field(description="the first sample it applies to (a lockstep source waits for it at a window's "
+                                   "start, at a breaker change and at its first sample)")
+    t: SampleTime = Field(description="the time of the sample it was made after, s")
+    window: Index = Field(description="the layer's window it is for")
+    alpha: Annotated[float, Field(ge=0.0, le=1.0)] = Field(
+        description="alpha_s: the source's share of the load among the sources connected then (0: not connected)")
+    v_ref_V: float = Field(description="the source's voltage reference, as the layer last moved it, V")
+    connected: bool = Field(description="its breaker was closed at that sample")
     has_range: bool = Field(description="a range is set for the window (false: the source is not connected)")
     Z_P_min: float = Field(description="Z^{r,in}: lower end of the incoming power range, W")
     Z_P_max: float = Field(description="upper end of the incoming power range, W")
@@ -198,6 +221,7 @@ MESSAGE_MODELS: dict[str, type[Msg]] = {
     "energyctl.Interaction": Interaction,
     "energyctl.TickInput": TickInput,
     "energyctl.Allocation": Allocation,
+    "energyctl.LayerWindow": LayerWindow,
     "energyctl.GridSample": GridSample,
     "energyctl.LayerSource": LayerSource,
     "energyctl.LayerTick": LayerTick,

@@ -7,8 +7,9 @@ Keys (PREFIX: ``prefix``, default energyctl):
 * the rig publishes each source's measurement on PREFIX/SOURCE/meas, each line end's interaction variable on
   PREFIX/LINE/z/NODE and each load's on PREFIX/LOAD/z, and the layer's sample on PREFIX/RIG/grid; it takes each
   source's command from PREFIX/SOURCE/cmd and breaker commands on PREFIX/RIG/breaker (a query);
-* the coordinator publishes each source's allocation on PREFIX/SOURCE/alloc and answers PREFIX/COORDINATOR/status
-  and PREFIX/COORDINATOR/connect (the plug-in handshake);
+* each source's daemon forms its share from the grid sample itself; the coordinator publishes each source's window
+  message on PREFIX/SOURCE/window (v_ref, Z^{r,in}, once per window and at a breaker change) and answers
+  PREFIX/COORDINATOR/status and PREFIX/COORDINATOR/connect (the plug-in handshake);
 * every process holds the liveliness token PREFIX/ID/alive.
 """
 
@@ -51,7 +52,8 @@ class CoordinatorConfig(Named):
     rig: str = Field(default="rig", description="the rig's id: its grid sample and its breaker query")
     lockstep: bool = Field(default=True, description="answer every grid sample in order (lockstep) rather than "
                                                      "only the newest")
-    out: str | None = Field(default=None, description="the coordinator's MCAP log (its allocations, windows, verdicts)")
+    out: str | None = Field(default=None, description="the coordinator's MCAP log (the shares per sample, windows, "
+                                                      "verdicts)")
     resume_timeout_s: SecsPos = Field(default=1.0, description="at start, how long to wait for "
                                                                                      "each source's config (its "
                                                                                      "v_ref) to resume from, s")
@@ -61,7 +63,7 @@ class CoordinatorConfig(Named):
 
 def source_component(net: NetworkScenario, source: str, *, prefix: str = "energyctl", zenoh: ZenohConfig | None = None,
                      lockstep: bool = True, log_dir: str | None = None, coordinator: str = "coordinator",
-                     connect_at_s: float | None = None, core: str = "auto") -> ComponentConfig:
+                     connect_at_s: float | None = None, core: str = "auto", rig: str = "rig") -> ComponentConfig:
     """The daemon config of one source of the network: its controller and its model (with the scenario's model
     error) as the offline run builds them, the network's rate and loop delay, a sample-triggered loop. connect_at_s
     None: the time of its first connect event in the scenario, if any."""
@@ -79,7 +81,11 @@ def source_component(net: NetworkScenario, source: str, *, prefix: str = "energy
                        idle_tau_s=net.layer.idle_tau_s, open_idle=net.layer.open_idle,
                        resume_ramp_s=net.layer.resume_ramp_s, fallback_idle_power_W=net.layer.fallback_idle_power_W,
                        extrapolate_s=net.layer.extrapolate_s, connect_at_s=connect_at_s,
-                       connected_at_start=src.connected, fallback=net.fallback_of(source))
+                       connected_at_start=src.connected, fallback=net.fallback_of(source), rig=rig,
+                       index=list(net.sources).index(source), shares=[s.share for s in net.sources.values()],
+                       sources_connected=[s.connected for s in net.sources.values()], sharing=net.layer.mode,
+                       carry_power_W=net.layer.idle_power_W, plug_in_ramp_s=net.layer.plug_in_ramp_s,
+                       window_s=net.layer.window_s)
     v_nom = net.nominal_v_V
     return ComponentConfig(
         id=source, prefix=prefix, zenoh=zenoh or ZenohConfig(), model=src.model_params(), controller=src.controller,

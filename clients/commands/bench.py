@@ -153,6 +153,14 @@ def _network_live(args: argparse.Namespace) -> dict:
                               progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
 
 
+def _network_coordinator(args: argparse.Namespace) -> dict:
+    from clients.bench.network_live import bench_network_coordinator
+
+    rates = [float(r) for r in (args.rates or "2000,10000").split(",")]
+    return bench_network_coordinator(rates, args.seconds or 3.0,
+                                     progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+
+
 def _network_rate(args: argparse.Namespace) -> dict:
     from clients.bench.network_rate import bench_network_rate
 
@@ -210,6 +218,10 @@ BENCHES: dict[str, Bench] = {
                                          "with SIGKILL and the coordinator lost and restarted (--realtime: at 1 kHz, "
                                          "and the highest of --rates at which two-source regulates, with each "
                                          "process's CPU; default rates 1000,1500,2000,3000, --seconds each)"),
+    "network-coordinator": Bench(_network_coordinator, "the coordinator's messages to the sources per second of "
+                                                       "sample time and its CPU per sample, two-source in lockstep "
+                                                       "at each of --rates (default 2000,10000) for --seconds "
+                                                       "(default 3)"),
     "network-rate": Bench(_network_rate, "the realtime two-source network at one rate (--rates, one, default 1000 "
                                          "Hz), --runs runs of --seconds (default 2), each beside a bare Zenoh echo "
                                          "with as many processes: runs passing every check, commands after their "

@@ -10,14 +10,16 @@ from clients.options import add_core, add_scenario_set, add_zenoh
 
 DESCRIPTION = """\
 Runs the interconnection layer of a network scenario as a service. With PREFIX (--prefix, default energyctl), it \
-reads the rig's sample on PREFIX/RIG/grid and publishes each source's allocation on PREFIX/SOURCE/alloc every \
-sample (P^{r,in} = its share of what the connected sources deliver, the v_ref it moves once per window to hold the \
-buses at nominal, its breaker, its feasibility range Z^{r,in}); it answers PREFIX/ID/status (shares, windows, \
-verdicts, who is connected) and PREFIX/ID/connect, the plug-in handshake: a source asks, the coordinator forecasts \
-its Z^{r,out} for its share of the current window and has the rig close its breaker only if Z^{r,out} lies inside \
-Z^{r,in}; a refusal carries the reason. A source whose liveliness token disappears is tripped (the rig opens its \
-breaker, the others take its share). At start it resumes each source's v_ref from its daemon. Every process of the \
-network reads the same scenario file. SIGINT/SIGTERM stop it; it prints its final status as JSON."""
+reads the rig's sample on PREFIX/RIG/grid and publishes each source's window message on PREFIX/SOURCE/window at \
+its first sample, at each window's end and at a breaker change (its share alpha_s, the v_ref it moves once per \
+window to hold the buses at nominal, its breaker, its feasibility range Z^{r,in}); each source forms its P^{r,in} \
+(its share of what the connected sources deliver) from the grid sample itself every sample. It answers \
+PREFIX/ID/status (shares, windows, verdicts, who is connected) and PREFIX/ID/connect, the plug-in handshake: a \
+source asks, the coordinator forecasts its Z^{r,out} for its share of the current window and has the rig close its \
+breaker only if Z^{r,out} lies inside Z^{r,in}; a refusal carries the reason. A source whose liveliness token \
+disappears is tripped (the rig opens its breaker, the others take its share). At start it resumes each source's \
+v_ref from its daemon. Every process of the network reads the same scenario file. SIGINT/SIGTERM stop it; it \
+prints its final status as JSON."""
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -31,7 +33,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     co.add_argument("--realtime", action="store_true",
                     help="answer only the newest grid sample (a realtime rig); default: every sample in order "
                          "(lockstep)")
-    co.add_argument("--out", metavar="FILE.mcap", help="its log: per sample what it saw and allocated, its windows, "
+    co.add_argument("--out", metavar="FILE.mcap", help="its log: per sample what it saw and the shares, its windows, "
                                                        "verdicts and trips (energyctl replay FILE.mcap replays it)")
     co.add_argument("--no-trip-on-loss", action="store_true",
                     help="do not trip a source whose liveliness token disappears")

@@ -36,21 +36,23 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     net = r.add_argument_group(
         "a source of a live network (instead of --config)",
         "The daemon of one source of a network scenario: its controller, model error, rate and loop delay from the "
-        "scenario, P^{r,in} from the coordinator's allocation on PREFIX/SOURCE/alloc (falling back to its own "
-        "terminal when that is older than 10 ms of sample time), the lines at its terminal as its neighbours, and "
+        "scenario, P^{r,in} = -alpha_s sum_k P_k formed by itself each sample from the rig's grid sample on "
+        "PREFIX/RIG/grid (falling back when that is older than 10 ms of sample time), v_ref and Z^{r,in} from the "
+        "coordinator's window message on PREFIX/SOURCE/window, the lines at its terminal as its neighbours, and "
         "the plug-in handshake with the coordinator while its breaker is open. --set then overrides the scenario.")
     net.add_argument("--network", metavar="NETWORK.toml", help="the network scenario (kind = \"network\")")
     net.add_argument("--source", metavar="NAME", help="which of its sources this daemon controls")
     net.add_argument("--prefix", default="energyctl", help="key-expression prefix (default: %(default)s)")
     net.add_argument("--realtime", action="store_true", help="a realtime rig: answer each sample as it comes "
-                                                            "(default: lockstep, waiting for each allocation)")
+                                                            "(default: lockstep, waiting for each grid sample)")
     net.add_argument("--log-dir", metavar="DIR", help="record to DIR/SOURCE-<UTC time>.mcap")
     net.add_argument("--connect-at", type=float, metavar="SECONDS",
                      help="ask to connect from this sample time on while its breaker is open (default: the time of "
                           "its connect event in the scenario; none: it asks only if the scenario has it connected "
-                          "from the start and its first allocation shows its breaker open, i.e. restarted after a "
+                          "from the start and its first grid sample shows its breaker open, i.e. restarted after a "
                           "trip); 0: whenever its breaker is open")
     net.add_argument("--coordinator", default="coordinator", help="the coordinator's id (default: %(default)s)")
+    net.add_argument("--rig", default="rig", help="the rig's id: its grid sample (default: %(default)s)")
     add_core(net)
     add_zenoh(net)
     r.set_defaults(func=run)
@@ -74,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             cfg = source_component(net, args.source, prefix=args.prefix, zenoh=zenoh_from_args(args),
                                    lockstep=not args.realtime, log_dir=args.log_dir, coordinator=args.coordinator,
-                                   connect_at_s=args.connect_at, core=args.core)
+                                   connect_at_s=args.connect_at, core=args.core, rig=args.rig)
         except ValueError as e:
             raise ScenarioError(f"--source: {e}") from None
         return run_daemon(cfg, args.stats_out)

@@ -90,7 +90,19 @@ class SourceController:
              ) -> tuple[float, float]:
         """(du/dt V/s, planned du/dt for the period after V/s) answering sample s. P_in_W, P_in_dot_W_per_s: the
         incoming interaction variable P^{r,in} (W, negative when delivering) and its rate, as last received;
-        connected: its breaker is closed; fresh: that P^{r,in} is recent enough to use."""
+        connected: its breaker is closed; fresh: that P^{r,in} is recent enough to use. plan, then the core's step
+        on what it gives (a live daemon does the two halves itself: its core's step may be the compiled tick)."""
+        P, P_dot, r = self.plan(s, P_in_W, P_in_dot_W_per_s, connected, fresh)
+        if r is not None:
+            return r, 0.0
+        out = self.core.step(s, Incoming(P, P_dot))
+        return out.du_dt, out.du_dt_next
+
+    def plan(self, s: Sample, P_in_W: float, P_in_dot_W_per_s: float, connected: bool, fresh: bool
+             ) -> tuple[float, float, float | None]:
+        """What this step does (see step for the arguments): (P^{r,in} W and its rate W/s for the core, None) when
+        the core is to step on them, or (P^{r,in} W, 0.0, du/dt V/s) when the source idles: the core was told
+        (core.hold) and du/dt is the command. Sets mode, P_in_used and the fallback's state."""
         if not fresh:
             if self.fallback == "last-allocation" and self._P_last is not None:
                 P_own = -s.v * s.i_load
@@ -125,16 +137,15 @@ class SourceController:
         if idle:
             self.mode = IDLE
             if self.hold_when_open and (not connected or not fresh):
-                # open, or not known to be closed: the caller's breaker state comes with the allocation, and a
+                # open, or not known to be closed: the caller's breaker state comes with the grid sample, and a
                 # stale one may say closed after the breaker opened (a host cut off, then tripped)
                 self.core.hold(s.seq, 0.0)
-                return 0.0, 0.0
+                return P_in_W, 0.0, 0.0
             lim = self.core.cfg.limits
             target = self.v_ref_V - self.droop_ohm * s.i
             r = (target - s.u) / self.idle_tau_s
             r = min(max(r, -lim.du_dt_max_V_per_s), lim.du_dt_max_V_per_s)
             self.core.hold(s.seq, r)
-            return r, 0.0
+            return P_in_W, 0.0, r
         self.mode = ACTIVE if fresh else FALLBACK
-        out = self.core.step(s, Incoming(P_in_W, P_in_dot_W_per_s))
-        return out.du_dt, out.du_dt_next
+        return P_in_W, P_in_dot_W_per_s, None

@@ -1,10 +1,12 @@
 """The interconnection layer as a Zenoh service (energyctl coordinator).
 
-Its loop thread takes the rig's grid sample (PREFIX/RIG/grid: each source's measured v and i_out, its breaker, the
-buses' measured voltages, the loads' powers) and drives the same pure layer as the offline run
-(service.network.layer.InterconnectionLayer): each sample it publishes every source's allocation on PREFIX/SOURCE/alloc
-(P^{r,in} and its rate, the v_ref it last moved, the breaker, Z^{r,in} for the window); once per window it moves
-v_ref and sets the next window's ranges.
+It is off the per-sample path: each source's daemon forms its P^{r,in} = -alpha_s sum_k P_k itself from the rig's
+grid sample (service.network.layer.Sharing). The coordinator's loop thread takes the same grid sample
+(PREFIX/RIG/grid: each source's measured v and i_out, its breaker, the buses' measured voltages, the loads' powers)
+and drives the same pure layer as the offline run (service.network.layer.InterconnectionLayer.step): once per window
+it moves v_ref and sets the next window's ranges, and publishes each source's LayerWindow on PREFIX/SOURCE/window
+(alpha_s, v_ref, its breaker, Z^{r,in}): at the first sample it takes, at each window's end and when a breaker
+changes. It judges plug-ins and trips.
 
 * **Plug-in handshake** (PREFIX/ID/connect, JSON): an offer request (``{"source", "controller", "at_seq",
   "offer": true}``) is answered with what the source would be asked to deliver over the current window (its share
@@ -18,14 +20,14 @@ v_ref and sets the next window's ranges.
 * **Trip on lost liveliness**: a connected source whose token PREFIX/SOURCE/alive disappears is tripped: the rig is
   asked to open its breaker, and from the sample that shows it open its share goes to the others.
 * **Coming back**: at start it asks each source's daemon for its config and resumes from the v_ref it reports; the
-  sources, meanwhile, kept their last v_ref and fell back to their own terminals (service.daemon.netsource).
+  sources, meanwhile, kept sharing from the grid sample with their last v_ref (service.daemon.netsource).
 
 Query handling, JSON and logging stay off the loop thread's per-sample path except for the connect check, which is
 rare and, in lockstep, must happen between two samples.
 
 A bad grid sample or request is rejected, counted and answered; an exception nobody expected, in the loop or in a
 trip's or a liveliness re-check's thread, fails the coordinator (service.daemon.failure): it publishes no more
-allocations (each source falls back to its own terminal once the last one is older than its stale_s), withdraws its
+window messages (each source keeps sharing from the grid sample with the last window's v_ref), withdraws its
 token, says why on stderr and in status (state failed, failure), and ``energyctl coordinator`` exits 1.
 """
 
@@ -40,7 +42,7 @@ from queue import Empty, Queue
 
 import zenoh
 
-from schemas.codec import ALLOC, GRID, LAYER_SRC, LAYER_TICK, DecodeError
+from schemas.codec import GRID, LAYER_SRC, LAYER_TICK, WINDOW, DecodeError
 from schemas.netlive import CoordinatorConfig
 from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
@@ -80,11 +82,12 @@ class Coordinator:
         self.verdicts: deque = deque(maxlen=20)
         self.trips: deque = deque(maxlen=20)
         self.counters = {"grid_samples": 0, "missing_samples": 0, "rejected": 0, "connect_requests": 0,
-                         "accepted": 0, "refused": 0, "trips": 0, "restarts": 0}
+                         "accepted": 0, "refused": 0, "trips": 0, "restarts": 0, "windows_sent": 0}
         self.last_reject = ""
         self.resumed: dict[str, float] = {}
         self.sizes = (self.ns, len(net.buses), len(net.loads))
         self._behind = 0  # grid samples in a row not after the newest one taken
+        self._jump = -2  # the last grid sample refused for coming more than a window after the newest
         self._tripping: set[str] = set()  # sources asked to trip, until a sample shows their breaker open
         self.rig_alive: bool | None = None  # the rig's token: gone means this coordinator may be the one cut off
         self._alive_checked: Queue = Queue()
@@ -105,7 +108,7 @@ class Coordinator:
         c = self.cfg
         self.session = s = open_session(c.zenoh)
         self.grid_sub, self.grid_q = queued(s, key(c.prefix, c.rig, "grid"), 0 if c.lockstep else 4)
-        self.pubs = [publisher(s, key(c.prefix, name, "alloc")) for name in self.names]
+        self.pubs = [publisher(s, key(c.prefix, name, "window")) for name in self.names]
         self.alive_sub = s.liveliness().declare_subscriber(key(c.prefix, "*", "alive"),
                                                            zenoh.handlers.FifoChannel(256), history=True)
         if c.out:
@@ -208,7 +211,7 @@ class Coordinator:
                 break
 
     def _safe_state(self) -> None:
-        """No allocation after the failure (the loop has ended): the sources fall back to their own terminals; the
+        """No window message after the failure (the loop has ended): the sources keep the last window's v_ref; the
         token withdrawn, so that they (and an operator) see the coordinator gone at once."""
         self._stop.set()
         try:
@@ -220,7 +223,8 @@ class Coordinator:
         self._event(self.t, self.seq, "failed", {"failure": self.failure.reason})
 
     def grid(self, payload: bytes) -> None:
-        """One grid sample: allocate, publish, record, and close the window if it ends here."""
+        """One grid sample: the sharing for the record, the window sums, a window message when the breakers changed
+        or a window ends."""
         try:
             seq, t, v, i_out, connected, bus_v, load_P = GRID.decode(payload)
         except DecodeError as e:
@@ -249,6 +253,12 @@ class Coordinator:
             self.layer = InterconnectionLayer(self.net, self.layer.loads)
             self.seq = -1
             self._offers.clear()  # made in the run that ended
+        elif self.seq >= 0 and seq > self.seq + self.layer.per_window and seq != self._jump + 1:
+            # more than a window ahead: taken when the next sample follows it (a rig seen again after an outage),
+            # not from one alone (a stray sender's would stop every window message until the rig's caught up)
+            self._jump = seq
+            self._reject(f"grid.seq: {seq} is {seq - self.seq} samples after {self.seq}; taken if the next follows")
+            return
         elif self.seq >= 0 and seq > self.seq + 1:
             self.counters["missing_samples"] += seq - self.seq - 1
         self._behind = 0
@@ -272,24 +282,32 @@ class Coordinator:
             elif self.alive[name] is False and self.cfg.trip_on_loss and name not in self._tripping:
                 self._trip(name)
         self.want = want
-        w, zin, v_ref = self.window, self.zin, layer.v_ref
-        for j in range(ns):
-            z = zin[j]
-            self.pubs[j].put(ALLOC.encode(seq, t, want[j], rate[j], v_ref[j], connected[j], w, z is not None,
-                                          *(z if z is not None else (0.0, 0.0, 0.0, 0.0))))
+        if topology:  # the range for the new breakers, from this sample on (a lockstep source waits for it)
+            self._send_window(seq, t)
         rec = self.recorder
         if rec is not None:
+            v_ref = layer.v_ref
             for j in range(ns):
                 rec.offer(self.t_src[j], t, (seq, t, v[j], i_out[j], connected[j], want[j], rate[j], v_ref[j]))
             rec.offer(self.t_tick, t, (seq, t, sum(bus_v) / len(bus_v) if bus_v else 0.0, sum(load_P),
                                        bool(bus_v)))
-        layer.accumulate(bus_v, v, P, load_P)
         # with idle_power_W = 0 a connected source is active (it idles only while disconnected)
-        win_k, moves = layer.window_end(seq, connected, [True] * ns, list(connected))
+        win_k, moves = layer.step(seq, (v, i_out, connected, bus_v, load_P), [True] * ns, list(connected), P)
         if win_k is not None:
             self.window = win_k
             if layer.active:
                 self.zin = layer.ranges(win_k, connected)
+            self._send_window(seq + 1, t)  # the next window's v_ref and range, before its first sample
+
+    def _send_window(self, seq: int, t: float) -> None:
+        """Each source's LayerWindow from sample seq on: its alpha_s, v_ref, breaker and Z^{r,in} for the window."""
+        w, zin, v_ref, connected = self.window, self.zin, self.layer.v_ref, self.connected
+        alpha = self.layer.sharing.alpha(connected)
+        for j in range(self.ns):
+            z = zin[j]
+            self.pubs[j].put(WINDOW.encode(seq, t, w, alpha[j], v_ref[j], connected[j], z is not None,
+                                           *(z if z is not None else (0.0, 0.0, 0.0, 0.0))))
+        self.counters["windows_sent"] += 1
 
     # ---------------------------------------------------------------- plug-in and trips
     def _take_connects(self) -> None:
@@ -578,7 +596,7 @@ def run_coordinator(cfg: CoordinatorConfig, net: NetworkScenario, stop: threadin
         stop.wait(0.05)
     died = not stop.is_set()  # the loop ended by itself: a failure, whatever the status says
     if died:
-        print(f"energyctl coordinator: {cfg.id} failed, no more allocations: "
+        print(f"energyctl coordinator: {cfg.id} failed, no more window messages: "
               f"{co.failure.reason or 'its loop ended by itself'}", file=log, flush=True)
     co.stop()
     loop.join(timeout=6.0)  # a plug-in check under way asks the rig with a 5 s timeout

@@ -86,6 +86,8 @@ class Daemon(DaemonQueries):
         self._reject_events: dict[str, tuple[int, int]] = {}  # reason -> (loop ns of its last event, rejects since)
         self.degraded_reason = ""
         self.reference = "none"
+        self._reference = None  # a pluggable reference (_step); None: the neighbours'
+        self._held_du = 0.0  # a HELD tick's command (_reference), V/s
         self._pending_state: str | None = None
         self._stop = threading.Event()
         self._last_seq = -1
@@ -717,32 +719,58 @@ class Daemon(DaemonQueries):
             self._chain_n = 0
         return v
 
+    # what a tick does with a pluggable reference (self._reference, None for this daemon's own: the neighbours):
+    # step the core on it, hold u (du/dt = 0, the core told here), or send the reference's own command
+    # (self._held_du; the core was told by whoever made it: an idle network source)
+    STEP, HOLD, HELD = 0, 1, 2
+
+    def _begin(self, v: tuple) -> None:
+        """With a pluggable reference: before sample v is taken (a network source forgets a run the rig
+        restarted)."""
+
+    def _before_publish(self, seq: int, t: float) -> None:
+        """With a pluggable reference: after the command is made, before it goes out (a network source's plug-in
+        request, which in lockstep must be made before the rig gets this answer)."""
+
     def _step(self, v: tuple, now: int) -> None:
-        """The tick's second half, for the sample v (_sample's): P^{r,in} from the neighbours, the core's step, the
-        command, the record; ``now``: the loop's clock (ns) for the neighbours' freshness."""
+        """The tick's second half, for the sample v (_sample's): the reference, the core's step on it (the compiled
+        tick when there is one), the command, the record; ``now``: the loop's clock (ns) for the neighbours'
+        freshness. The reference is this daemon's own, P^{r,in} = -sum_j P_j^{r,out} of the neighbours at this
+        sample's time (service.core.interaction) or the local reference while they are not fresh (config
+        local_reference_W; none fresh: hold), unless a subclass plugs its own in (self._reference(v, now) ->
+        (P^{r,in} W, its rate W/s, STEP / HOLD / HELD): a network source's share formed from the grid sample,
+        service.daemon.netsource), with the _begin and _before_publish hooks around it."""
         fast = self._fast
         t_control = _now_ns()
         seq, t = v[0], v[1]
-        self._take_sample(v)
-        stale_s, horizon_s = self.cfg.neighbour_stale_s, self.cfg.neighbour_extrapolate_s
-        stale_ns = int(stale_s * 1e9)
-        P_in = P_in_dot = 0.0
-        fresh = True
-        for nb in self.neighbours:
-            if not nb.fresh(now, stale_ns):
-                fresh = False
-            if nb.alive is not nb.alive_seen:
-                self._neighbour_event(nb, t)
-            # P^{r,in} = -sum_j P_j^{r,out} at this sample's time (service.core.interaction)
-            P_in -= _outgoing_power_at(t, nb.t, nb.P, nb.P_dot, stale_s, horizon_s)
-            P_in_dot -= nb.P_dot
-        self.reference = "neighbours" if fresh else "none"
-        local = self.cfg.local_reference_W
-        if not fresh and local is not None:  # flagged in status
-            P_in = -v[3] * v[5] if local == "measured" else -local
-            P_in_dot, fresh = 0.0, True
-            self.reference = "local"
-        stepped = self.state == "active" and fresh
+        plugged = self._reference
+        if plugged is None:
+            self._take_sample(v)
+            stale_s, horizon_s = self.cfg.neighbour_stale_s, self.cfg.neighbour_extrapolate_s
+            stale_ns = int(stale_s * 1e9)
+            P_in = P_in_dot = 0.0
+            fresh = True
+            for nb in self.neighbours:
+                if not nb.fresh(now, stale_ns):
+                    fresh = False
+                if nb.alive is not nb.alive_seen:
+                    self._neighbour_event(nb, t)
+                # P^{r,in} = -sum_j P_j^{r,out} at this sample's time (service.core.interaction)
+                P_in -= _outgoing_power_at(t, nb.t, nb.P, nb.P_dot, stale_s, horizon_s)
+                P_in_dot -= nb.P_dot
+            self.reference = "neighbours" if fresh else "none"
+            local = self.cfg.local_reference_W
+            if not fresh and local is not None:  # flagged in status
+                P_in = -v[3] * v[5] if local == "measured" else -local
+                P_in_dot, fresh = 0.0, True
+                self.reference = "local"
+            stepped = self.state == "active" and fresh
+            held = False
+        else:
+            self._begin(v)
+            self._take_sample(v)
+            P_in, P_in_dot, what = plugged(v, now)
+            stepped, held = what == 0, what == 2  # STEP, HELD
         rec = self.recorder
         if stepped and fast is not None:  # the compiled core: the lines below, in C, in one call (_tick_writer)
             cmd, du, du_next, limited, late, P_out, Qdot_out, dropped = fast.step(seq, t, v[2], v[3], v[4], v[5],
@@ -754,14 +782,20 @@ class Daemon(DaemonQueries):
                 du, du_next, limited, late, P_out, Qdot_out = self.core.step_values(seq, t, v[2], v[3], v[4], v[5],
                                                                                     P_in, P_in_dot)
             else:
-                du, du_next, limited = 0.0, 0.0, False  # inactive, or no fresh reference: hold the source voltage
+                if held:  # the reference's own command (an idle network source's), the core told already
+                    du = self._held_du
+                else:  # inactive, or no fresh reference: hold the source voltage
+                    du = 0.0
+                    self.core.hold(seq)
+                du_next, limited = 0.0, False
                 late, P_out = False, None
-                self.core.hold(seq)
             cmd = _CMD_PACK(_CMD_MAGIC, _VERSION, seq, t, du, du_next, limited)
             self._remember(seq, v[4], du)
             if rec is not None:  # values only: encoding and I/O happen in the recorder's process
                 # meas, z_in and cmd in one ring slot (RingRecorder groups)
                 rec.offer_group(0, t, *v, seq, t, P_in, P_in_dot, stepped, seq, t, du, du_next, limited)
+        if plugged is not None:
+            self._before_publish(seq, t)
         t_put = _now_ns()
         self.control_ns = t_put - t_control  # LoopStats "control_us"
         self.cmd_pub.put(cmd)

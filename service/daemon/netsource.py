@@ -1,16 +1,21 @@
-"""A source on a live network: today's daemon, its P^{r,in} coming from the coordinator's allocation.
+"""A source on a live network: today's daemon, forming its P^{r,in} itself from the rig's grid sample.
 
 What differs from a single component's daemon (service.daemon.daemon):
 
-* each tick it follows the newest allocation on PREFIX/ID/alloc (schemas.messages.Allocation): P^{r,in} carried
-  forward along its rate by its age (at most ``network.extrapolate_s``), the v_ref the layer moved, its breaker as
-  the rig reported it, and Z^{r,in} for the window, which its feasibility monitor checks P^{r,out} against;
+* each sample it takes the rig's grid sample (PREFIX/RIG/grid: every source's measured v and i_out and breaker) and
+  forms P^{r,in} = -alpha_s sum_k P_k and its filtered rate through the layer's own pure code
+  (service.network.layer.Sharing, with the shares, carrying threshold and plug-in ramp of its NetworkRole): the
+  coordinator is not on the per-sample path. P^{r,in} is carried forward along its rate by the grid sample's age (at
+  most ``network.extrapolate_s``); its breaker is the grid sample's;
+* once per window (and at a breaker change, and at the coordinator's first sample) the coordinator's LayerWindow on
+  PREFIX/ID/window brings the v_ref the layer moved and Z^{r,in} for the window, which its feasibility monitor
+  checks P^{r,out} against; each is applied from the sample it names. A coordinator gone leaves it sharing with the
+  last window's v_ref;
 * around the core it runs the offline network's source controller (service.core.source.SourceController): idle
-  mode when disconnected or asked for little, and the fallback to its own terminal power when the allocation is
-  older than ``network.stale_s`` of sample time — a coordinator gone or cut off leaves it on its last v_ref, falling
-  back as the offline design does;
+  mode when disconnected or asked for little, and the fallback when the grid sample is older than
+  ``network.stale_s`` of sample time;
 * the line ends at its terminal (PREFIX/LINE/z/ID) are its neighbours: shown in status and logged, not followed;
-* the plug-in handshake: from ``network.connect_at_s`` on (unset: from its first allocation, if that shows its
+* the plug-in handshake: from ``network.connect_at_s`` on (unset: from its first grid sample, if that shows its
   breaker open although the scenario has it connected from the start: a daemon restarted after its source was
   tripped), while its breaker is open, it asks the coordinator
   (PREFIX/COORDINATOR/connect) for its offer (its share of the window's load box), forecasts its own Z^{r,out} for
@@ -19,8 +24,10 @@ What differs from a single component's daemon (service.daemon.daemon):
   inside the tick before its answer goes out (the rig waits for that answer, so the breaker closes at the next
   sample, as offline); in realtime a thread makes it and the loop goes on.
 
-The same inputs give the same commands as the offline network (service.network.netsim), so a lockstep run over
-Zenoh equals the offline run to the bit, and its log replays identical (idle periods as held rows, v_ref moves as
+In lockstep it waits for the grid sample of its sample, and for the window message only where one is due (a
+window's first sample, a breaker change the grid sample shows, and unless the coordinator's token is gone). The
+same inputs give the same commands as the offline network (service.network.netsim), so a lockstep run over Zenoh
+equals the offline run to the bit, and its log replays identical (idle periods as held rows, v_ref moves as
 events).
 """
 
@@ -30,21 +37,27 @@ import json
 import sys
 import threading
 import time
+from collections import deque
 
 import zenoh
 
-from schemas.codec import ALLOC, CMD, DecodeError, Z
+from schemas.codec import GRID, WINDOW, DecodeError, Z
 from schemas.component import ComponentConfig
 from service.core.interaction import outgoing_power_at
-from service.core.source import ACTIVE, IDLE, MODES, SourceController
+from service.core.source import ACTIVE, MODES, SourceController
 from service.core.types import Sample
 from service.daemon.bus import key, latest, request
 from service.daemon.daemon import Daemon, _now_ns
 from service.daemon.forecast_worker import start_background_pool
 from service.daemon.neighbours import Neighbour
 from service.forecast import forecast_outgoing
+from service.network.layer import Sharing
+
+I_MAX_A = 10_000.0  # a grid sample's current beyond this (A) is refused, named (as the coordinator's)
 
 FALLBACK_REFERENCE = {"last-allocation": "last allocation (fallback)", "own-terminal": "own terminal (fallback)"}
+WINDOW_PENDING_MAX = 8  # window messages held until their sample comes (lockstep: at most the next one)
+GRID_RING = 64  # grid samples kept between two polls (a lockstep daemon polls every sample)
 
 
 class NetworkSourceDaemon(Daemon):
@@ -60,18 +73,28 @@ class NetworkSourceDaemon(Daemon):
                                     hold_when_open=self.role.open_idle == "hold", resume_ramp_s=self.role.resume_ramp_s,
                                     fallback_idle_power_W=self.role.fallback_idle_power_W,
                                     fallback=self.role.fallback)
-        self.alloc = Neighbour(self.role.coordinator, None)
-        self.alloc_vals: tuple | None = None  # the newest allocation's values (schemas.codec.ALLOC order)
+        r = self.role
+        self.grid = Neighbour(r.rig, None)  # the newest grid sample taken: seq, t, P = P^{r,in}, P_dot its rate
+        self.sharing = Sharing.of_role(r, self.period_s)
+        self.grid_connected: list[bool] | None = None  # the breakers of the newest grid sample
+        self._changed_at = -1  # the grid sample whose breakers differ from the one before it
+        self._grid_jump = -2  # the last grid sample refused as ahead of the samples
+        self.win = Neighbour(r.coordinator, None)  # the newest window message: seq (applies from), alive
+        self.win_vals: tuple | None = None  # the window message applied (schemas.codec.WINDOW order)
+        self._win_pending: deque = deque(maxlen=WINDOW_PENDING_MAX)  # received, for a sample still to come
+        self.per_window = max(1, int(round(r.window_s / self.period_s)))
         self.lines: list[Neighbour] = []
-        self.connected: bool | None = None  # its breaker as the newest allocation reported it (None: none yet)
+        self.connected: bool | None = None  # its breaker as the newest grid sample shows it (None: none yet)
         self.v_ref_moves = 0
         self.fallback_ticks = 0
         self._range: tuple | None = None  # (window, Z^{r,in}) the feasibility monitor holds
+        self._t_prev = 0.0  # the previous sample's time (a v_ref event is dated there)
+        self._reference = self._share  # the tick's reference: the share formed from the grid sample
         self._seen_restarts = 0
         k_connect = None if self.role.connect_at_s is None else round(self.role.connect_at_s / self.period_s)
         self._connect_seq = k_connect  # the sample from which the breaker is to close
-        self._auto_connect = False  # restarted after a trip: asks from its first allocation on (module docstring)
-        self._first_alloc = True
+        self._auto_connect = False  # restarted after a trip: asks from its first grid sample on (module docstring)
+        self._first_grid = True
         self._next_request_t = -1.0  # sample time of the next connect request allowed
         self.handshake: dict = {"requests": 0, "last": None}
         self._asking = threading.Event()  # realtime: a request is under way in its thread
@@ -81,26 +104,27 @@ class NetworkSourceDaemon(Daemon):
     def _extra_topics(self) -> dict:
         c = self.cfg
         base = f"{c.prefix}/{c.id}"
-        self.t_alloc = f"{base}/alloc"
-        out = {self.t_alloc: ("energyctl.Allocation", ALLOC)}
+        self.t_window = f"{base}/window"
+        out = {self.t_window: ("energyctl.LayerWindow", WINDOW)}
         for ln in self.role.lines:
             out[f"{base}/z_nb/{ln}"] = ("energyctl.Interaction", Z)
         return out
 
     def open(self) -> None:
-        super().open()
-        if self._fast is not None:  # the compiled tick steps the bare core; this daemon steps the source controller
-            self._fast.close()
-            self._fast = None
-        c, s = self.cfg, self.session
-        self.alloc.sub = latest(s, key(c.prefix, c.id, "alloc"))
-        self.alloc.topic = f"{c.prefix}/{c.id}/alloc"
-        self.lines = [Neighbour(ln, latest(s, f"{c.prefix}/{ln}/z/{c.id}")) for ln in self.role.lines]
+        super().open()  # with the compiled tick: the controller plans each tick, the compiled tick steps the core
+        c, s, r = self.cfg, self.session, self.role
+        # a ring of the newest grid samples: the sharing steps on each that came (its rate over the ones missed); deep
+        # enough that a burst of bad frames on the key does not push out the sample a lockstep tick waits for
+        self.grid.sub = latest(s, key(c.prefix, r.rig, "grid"), GRID_RING)
+        self.grid.topic = f"{c.prefix}/{r.rig}/grid"
+        self.win.sub = latest(s, key(c.prefix, c.id, "window"), WINDOW_PENDING_MAX)
+        self.win.topic = f"{c.prefix}/{c.id}/window"
+        self.lines = [Neighbour(ln, latest(s, f"{c.prefix}/{ln}/z/{c.id}")) for ln in r.lines]
         for nb in self.lines:
             nb.topic = f"{c.prefix}/{c.id}/z_nb/{nb.id}"
-        self.neighbours = [self.alloc]  # a lockstep tick waits for the allocation for its sample (not the lines)
-        self._by_id = {self.role.coordinator: self.alloc}
-        self.alive_sub = s.liveliness().declare_subscriber(key(c.prefix, self.role.coordinator, "alive"),
+        self.neighbours = [self.grid]  # a lockstep tick waits for the grid sample of its sample (_await_neighbours)
+        self._by_id = {r.coordinator: self.win}
+        self.alive_sub = s.liveliness().declare_subscriber(key(c.prefix, r.coordinator, "alive"),
                                                            zenoh.handlers.FifoChannel(64), history=True)
         if self._connect_seq is not None and not c.loop.lockstep:
             # started and waited for now, before the loop and its token: its imports cost a second of CPU, and a
@@ -116,109 +140,199 @@ class NetworkSourceDaemon(Daemon):
     # ---------------------------------------------------------------- inputs
     def _poll_neighbours(self, now: int) -> None:
         while (tok := self.alive_sub.try_recv()) is not None:
-            self.alloc.alive = tok.kind == zenoh.SampleKind.PUT
-        a = self.alloc
-        m = a.sub.try_recv()
-        if m is not None:
+            self.win.alive = tok.kind == zenoh.SampleKind.PUT
+        g = self.grid
+        while (m := g.sub.try_recv()) is not None:
             try:
-                v = ALLOC.decode(m.payload.to_bytes())
-                self._check_alloc(v)
+                self._take_grid(m.payload.to_bytes(), now)
             except DecodeError as e:
-                self._reject(f"alloc.{e.field}: invalid", now, e.reason)
-            else:
-                a.seq, a.t, a.P, a.P_dot = v[0], v[1], v[2], v[3]
-                self.alloc_vals = v
-                a.rx_ns = now
-                a.count += 1
-                if self.recorder is not None:
-                    self.recorder.offer(a.topic, v[1], v)
+                self._reject(f"grid.{e.field}: invalid", now, e.reason)
+        w = self.win
+        while (m := w.sub.try_recv()) is not None:
+            try:
+                v = WINDOW.decode(m.payload.to_bytes())
+                self._check_window(v)
+            except DecodeError as e:
+                self._reject(f"window.{e.field}: invalid", now, e.reason)
+                continue
+            self._win_pending.append(v)
+            w.seq, w.t, w.rx_ns = v[0], v[1], now
+            w.count += 1
+            if w.lagging and v[0] >= self._last_seq:
+                w.lagging = False
+            if self.recorder is not None:
+                self.recorder.offer(self.t_window, v[1], v)
         for nb in self.lines:
             v = self._take_z(nb, now)
             if v is not None and self.recorder is not None:
                 self.recorder.offer(nb.topic, v[1], v)
 
-    def _check_alloc(self, v: tuple) -> None:
-        """Refuse (DecodeError naming the field) an allocation that no layer of this network sends: a v_ref outside
-        the layer's bounds, a power beyond the source's."""
+    def _take_grid(self, payload: bytes, now: int) -> None:
+        """One grid sample: checked (DecodeError naming the field), then the sharing stepped on it."""
+        seq, t, v, i_out, connected, _bus_v, _load_P = GRID.decode(payload)
+        r, g = self.role, self.grid
+        ns = len(r.shares)
+        if len(v) != ns:
+            raise DecodeError("GridSample", "v", f"{len(v)} sources; the network has {ns}")
+        T = self.period_s
+        if abs(t - seq * T) > 0.5 * T:
+            raise DecodeError("GridSample", "t", f"{t!r} s is not seq x T ({seq} x {T:g} s)")
+        ls = self.last_sample
+        if ls is not None and t > ls[1] + r.stale_s and seq > ls[0] + 1 and seq != self._grid_jump + 1:
+            # ahead of the samples: a stray sender's, or the rig's after this daemon was cut off (its next sample
+            # follows this one: then taken, before the measurements' own clock resyncs)
+            self._grid_jump = seq
+            raise DecodeError("GridSample", "seq", f"{seq} is ahead of the samples (newest {ls[0]})")
+        hi = self.cfg.meas_v_max_V
+        for j in range(ns):
+            if not 0.0 <= v[j] <= hi:
+                raise DecodeError("GridSample", f"v[{j}]", f"{v[j]!r} V out of [0, {hi:g}]")
+            if not abs(i_out[j]) <= I_MAX_A:
+                raise DecodeError("GridSample", f"i_out[{j}]", f"|{i_out[j]!r}| A above {I_MAX_A:g}")
+            if not abs(v[j] * i_out[j]) <= r.P_max_W:
+                raise DecodeError("GridSample", f"i_out[{j}]", f"|v i_out| {abs(v[j] * i_out[j]):g} W above "
+                                                              f"{r.P_max_W:g}")
+        if seq <= g.seq:
+            if seq != 0:  # (a passed sample, or a stray sender's: the sharing steps on each sample once, in order)
+                raise DecodeError("GridSample", "seq", f"{seq} not after {g.seq}")
+            self._new_sharing()  # seq 0 again: the rig restarted (as a measurement's seq 0 says)
+        P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(ns)]
+        want, rate = self.sharing.step(seq, P, connected)
+        if self.grid_connected is not None and connected != self.grid_connected:
+            self._changed_at = seq
+        self.grid_connected = connected
+        i = r.index
+        g.seq, g.t, g.P, g.P_dot = seq, t, want[i], rate[i]
+        g.rx_ns = now
+        g.count += 1
+
+    def _new_sharing(self) -> None:
+        g = self.grid
+        self.sharing = Sharing.of_role(self.role, self.period_s)
+        g.seq, g.count, g.t, g.P, g.P_dot = -1, 0, 0.0, 0.0, 0.0
+        self.grid_connected = None
+        self._changed_at = -1
+
+    def _check_window(self, v: tuple) -> None:
+        """Refuse (DecodeError naming the field) a window message no layer of this network sends: a v_ref outside
+        the layer's bounds, a sample more than two windows ahead of the newest one stepped on."""
         r = self.role
         if (r.v_ref_min_V is not None and v[4] < r.v_ref_min_V) or (r.v_ref_max_V is not None and v[4] > r.v_ref_max_V):
-            raise DecodeError("Allocation", "v_ref_V", f"{v[4]:g} V outside [{r.v_ref_min_V}, {r.v_ref_max_V}]")
-        if abs(v[2]) > r.P_max_W:
-            raise DecodeError("Allocation", "P_r_in", f"|{v[2]:g}| W above {r.P_max_W:g}")
+            raise DecodeError("LayerWindow", "v_ref_V", f"{v[4]:g} V outside [{r.v_ref_min_V}, {r.v_ref_max_V}]")
+        ls = self.last_sample
+        if ls is not None and v[0] > ls[0] + 2 * self.per_window + 1:  # the coordinator sends at most a window ahead
+            raise DecodeError("LayerWindow", "seq", f"{v[0]} is ahead of the samples (newest {ls[0]})")
 
-    def _forget_run(self) -> None:
-        """The rig restarted: what this daemon knew of its run (allocation, breaker, handshake) is not this run's."""
-        a = self.alloc
-        a.seq, a.count, a.t, a.P, a.P_dot = -1, 0, 0.0, 0.0, 0.0
-        self.alloc_vals = None
+    def _await_neighbours(self, seq: int, deadline: int) -> None:
+        """Lockstep: poll until the grid sample for ``seq`` came, then, where a window message is due (a window's
+        first sample, a breaker change that sample shows), until the coordinator's for ``seq`` came (not while its
+        token is gone nor while it lags), or the deadline (ns) passes: then count the timeout."""
+        now_ns, stop, g, w = time.monotonic_ns, self._stop, self.grid, self.win
+        while g.seq < seq and not g.lagging and not stop.is_set():
+            self._poll_neighbours(now_ns())
+            if g.seq >= seq:
+                break
+            if now_ns() > deadline:
+                self.stats.lockstep_timeouts += 1
+                g.lagging = True
+                break
+            time.sleep(20e-6)
+        if g.lagging and g.seq >= seq - 1:
+            g.lagging = False
+        if seq % self.per_window and self._changed_at != seq:
+            return
+        while w.seq < seq and w.alive is not False and not w.lagging and not stop.is_set():
+            self._poll_neighbours(now_ns())
+            if w.seq >= seq:
+                break
+            if now_ns() > deadline:
+                self.stats.lockstep_timeouts += 1
+                w.lagging = True  # until a window message for a sample now comes
+                break
+            time.sleep(20e-6)
+
+    def _forget_run(self, seq: int) -> None:
+        """The rig restarted (seq: the new run's sample): what this daemon knew of its run (sharing, window,
+        breaker, handshake) is not this run's; a grid sample or window message of the new run already taken stays."""
+        if self.grid.seq > seq:
+            self._new_sharing()
+        self.win_vals = None
+        keep = [w for w in self._win_pending if w[0] <= seq]
+        self._win_pending.clear()
+        self._win_pending.extend(keep)
+        self.win.seq = max((w[0] for w in keep), default=-1)
         self.connected = None
         self._next_request_t = -1.0
         self._range = None
         self._seen_restarts = self.restarts
-        self._first_alloc = True
+        self._first_grid = True
         self.ctl.reset_fallback()  # the previous run's kept share is not this run's
         if self._auto_connect:  # a new run: its start decides again
             self._connect_seq, self._auto_connect = None, False
 
-    # ---------------------------------------------------------------- the tick
-    def _step(self, v: tuple, now: int) -> None:
-        """The tick's second half for this daemon (the first, Daemon._sample, checks the sample alone: no compiled
-        tick here): the source controller steps on the sample with the allocation's P^{r,in}."""
-        t_control = _now_ns()
-        seq, t = v[0], v[1]
+    # ---------------------------------------------------------------- the tick (Daemon._step, with these parts)
+    def _begin(self, v: tuple) -> None:
+        """A new run (the rig restarted) forgets the previous one's; the previous sample's time, for a v_ref event."""
         if self.restarts != self._seen_restarts:
-            self._forget_run()
-        t_prev = self.last_sample[1] if self.last_sample is not None else t
-        self._take_sample(v)
-        role, ctl, rec, a = self.role, self.ctl, self.recorder, self.alloc
-        av = self.alloc_vals
-        if av is not None:
-            new = ctl.set_v_ref(av[4])  # the layer's move, applied before this sample as offline
+            self._forget_run(v[0])
+        self._t_prev = self.last_sample[1] if self.last_sample is not None else v[1]
+
+    def _share(self, v: tuple, now: int) -> tuple[float, float, int]:
+        """This daemon's reference (plugged into Daemon._step): the window messages due at this sample applied
+        (v_ref, Z^{r,in}), its breaker from the grid sample, and P^{r,in} as it formed it from the grid sample
+        (carried forward by its age) through the source controller's plan (idle, fallback, the ramp back): the core
+        steps on what the plan gives it (the compiled tick, in Daemon._step), or the controller's idle command goes
+        out."""
+        seq, t = v[0], v[1]
+        role, ctl, rec, g = self.role, self.ctl, self.recorder, self.grid
+        pend = self._win_pending
+        due = [wv for wv in pend if wv[0] <= seq] if pend else ()
+        if due:  # the window messages from this sample on, in order (a later one stays until its sample)
+            keep = [wv for wv in pend if wv[0] > seq]
+            pend.clear()
+            pend.extend(keep)
+        for wv in due:
+            self.win_vals = wv
+            new = ctl.set_v_ref(wv[4])  # the layer's move, applied before this sample as offline
             if new is not None:
                 self.v_ref_moves += 1
                 if rec is not None:
+                    t_prev = self._t_prev
                     rec.offer(self.t_ev, t_prev, (t_prev, seq, "config", json.dumps({"v_ref_V": new.v_ref_V})))
-            self.connected = bool(av[5])
-            if self._first_alloc:
-                self._first_alloc = False
+            if wv[6] and (wv[2], wv[7:11]) != self._range:  # a new window's range, or this one's after an event
+                self._range = (wv[2], wv[7:11])
+                self.feas.set_range(wv[2], wv[7:11])
+        if self.grid_connected is not None and g.count:
+            self.connected = bool(self.grid_connected[role.index])
+            if self._first_grid:
+                self._first_grid = False
                 if not self.connected and self._connect_seq is None and self.role.connected_at_start:
                     self._connect_seq, self._auto_connect = seq, True  # restarted after a trip: back by itself
-            if av[7] and (av[6], av[8:12]) != self._range:  # a new window's range, or this one's after an event
-                self._range = (av[6], av[8:12])
-                self.feas.set_range(av[6], av[8:12])
-        age = t - a.t
+        age = t - g.t
         # (one from ahead of this sample by more than stale_s is not this run's: a rig restarted, a stray sender)
-        fresh = a.count > 0 and -role.stale_s <= age <= role.stale_s
-        P_in = outgoing_power_at(t, a.t, a.P, a.P_dot, role.stale_s, role.extrapolate_s) if fresh else a.P
+        fresh = g.count > 0 and -role.stale_s <= age <= role.stale_s
+        P_in = outgoing_power_at(t, g.t, g.P, g.P_dot, role.stale_s, role.extrapolate_s) if fresh else g.P
+        self.reference = "sharing" if fresh else FALLBACK_REFERENCE[role.fallback]
+        if self.state != "active":  # inactive: hold the source voltage
+            return ctl.P_in_used, 0.0, self.HOLD
         connected = True if self.connected is None else self.connected  # unknown: its own terminal decides
-        limited = False
-        if self.state == "active":
-            du, du_next = ctl.step(Sample(seq, t, v[2], v[3], v[4], v[5]), P_in, 0.0, connected, fresh)
-            stepped = ctl.mode != IDLE
-            if stepped:
-                limited = self.core.out.limited
-                if not fresh:
-                    self.fallback_ticks += 1
-        else:  # inactive: hold the source voltage
-            du = du_next = 0.0
-            stepped = False
-            self.core.hold(seq)
-        self.reference = "allocation" if fresh else FALLBACK_REFERENCE[role.fallback]
-        if self._connect_seq is not None and not connected:
+        P, P_dot, r = ctl.plan(Sample(seq, t, v[2], v[3], v[4], v[5]), P_in, 0.0, connected, fresh)
+        if r is not None:  # idle: its own command, the core told
+            self._held_du = r
+            return P, 0.0, self.HELD
+        if not fresh:
+            self.fallback_ticks += 1
+        return P, P_dot, self.STEP
+
+    def _before_publish(self, seq: int, t: float) -> None:
+        if self._connect_seq is not None and self.connected is False:
             self._maybe_connect(seq, t)
-        cmd = CMD.encode(seq, t, du, du_next, limited)
-        self._remember(seq, v[4], du)
-        if rec is not None:
-            rec.offer_group(0, t, *v, seq, t, ctl.P_in_used, 0.0, stepped, seq, t, du, du_next, limited)
-        t_put = _now_ns()
-        self.control_ns = t_put - t_control
-        self.cmd_pub.put(cmd)
-        self.put_ns = _now_ns() - t_put
-        self.last_cmd = (seq, t, du, du_next, limited)
-        est = self.core.out.est
-        if stepped and ctl.mode == ACTIVE and est is not None and t >= 5.0 * self.core.cfg.deriv_tau_s:
-            self.feas.update(t, est.P_r_out_port, est.Qdot_r_out_port)
-        self._rarer_work(t, stepped and est is not None)
+
+    def _feasibility(self, t: float, P_out: float, Qdot_out: float) -> None:
+        """A stepped tick's P^{r,out} and Qdot^{r,out} against Z^{r,in} of the window message (not in fallback, and
+        after the estimate's derivative filter has settled)."""
+        if self.ctl.mode == ACTIVE and t >= 5.0 * self.core.cfg.deriv_tau_s:
+            self.feas.update(t, P_out, Qdot_out)
 
     # ---------------------------------------------------------------- the plug-in handshake
     def _maybe_connect(self, seq: int, t: float) -> None:
@@ -294,19 +408,22 @@ class NetworkSourceDaemon(Daemon):
     def status(self) -> dict:
         out = super().status()
         now = _now_ns()
-        a = self.alloc
-        av = self.alloc_vals
+        g, w, wv = self.grid, self.win, self.win_vals
         last_t = self.last_sample[1] if self.last_sample else None
         out["network"] = {
             "network": self.role.network,
             "mode": MODES[self.ctl.mode],
             "breaker": None if self.connected is None else ("closed" if self.connected else "open"),
-            "allocation": None if av is None else {
-                "from": self.role.coordinator, "seq": av[0], "t": av[1], "P_r_in": av[2], "P_r_in_dot": av[3],
-                "v_ref_V": av[4], "window": av[6], "Z_in": list(av[8:12]) if av[7] else None,
-                "age_s": None if last_t is None else last_t - av[1],
-                "stale": last_t is None or abs(last_t - av[1]) > self.role.stale_s,
-                "coordinator_alive": a.alive, "received_ago_s": (now - a.rx_ns) / 1e9},
+            "sharing": None if g.count == 0 else {
+                "from": self.role.rig, "seq": g.seq, "t": g.t, "P_r_in": g.P, "P_r_in_dot": g.P_dot,
+                "age_s": None if last_t is None else last_t - g.t,
+                "stale": last_t is None or abs(last_t - g.t) > self.role.stale_s,
+                "received_ago_s": (now - g.rx_ns) / 1e9},
+            "window": {
+                "from": self.role.coordinator, "coordinator_alive": w.alive, "messages": w.count,
+                **({} if wv is None else {
+                    "seq": wv[0], "window": wv[2], "alpha": wv[3], "v_ref_V": wv[4], "connected": bool(wv[5]),
+                    "Z_in": list(wv[7:11]) if wv[6] else None, "received_ago_s": (now - w.rx_ns) / 1e9})},
             "P_r_in_used": self.ctl.P_in_used, "v_ref_V": self.ctl.v_ref_V, "v_ref_moves": self.v_ref_moves,
             "fallback_ticks": self.fallback_ticks, "mode_switches": self.ctl.switches,
             "lines": {nb.id: {"P_r_out": nb.P, "messages": nb.count} for nb in self.lines},
@@ -316,7 +433,7 @@ class NetworkSourceDaemon(Daemon):
         return out
 
     def _why_not_connected(self) -> str | None:
-        """Why its breaker is not closed, for the operator (None: it is, or no allocation said yet)."""
+        """Why its breaker is not closed, for the operator (None: it is, or no grid sample said yet)."""
         if self.connected is not False:
             return None
         if self._connect_seq is None:

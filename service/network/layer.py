@@ -1,16 +1,19 @@
 """The interconnection layer of a DC network: what each source is to deliver, its per-window v_ref correction, its
 feasibility range, and the plug-in check. Pure: no clocks, no I/O.
 
-The offline network (``service.network.netsim``) and the live coordinator (``service.daemon.coordinator``) drive
-this one class with the same inputs, so a lockstep run over Zenoh reproduces the offline run to the bit. Each control
-period the caller hands it the measured power each source's lines draw (P_s = v_s i_out_s, W) and which sources are
-connected; it answers with P^{r,in}_s (W, negative when the source delivers) and its filtered rate:
+It has two parts. The per-sample part, ``Sharing``, each source forms itself from the grid sample (the measured
+power each source's lines draw, P_s = v_s i_out_s, W, and which sources are connected): P^{r,in}_s (W, negative when
+the source delivers) and its filtered rate. Live, a source's daemon steps it on the rig's grid sample
+(PREFIX/RIG/grid); offline (``service.network.netsim``) on what its link delivers; the same samples give the same
+bits, so a lockstep run over Zenoh reproduces the offline run to the bit:
 
 * ``layer.mode = "none"``: P^{r,in}_s = -P_s, the source's own lines (each regulates its own terminal);
 * ``layer.mode = "live-sum"``: P^{r,in}_s = -alpha_s sum_k P_k, alpha_s = share_s / (sum of the shares of the
   connected sources that carry more than ``idle_power_W``): the load shared in the configured proportions,
   rescaled at once when a source trips.
 
+The per-window part, ``InterconnectionLayer`` (``step(k, grid)`` after each sample), the coordinator runs and
+sends once per window (schemas.messages.LayerWindow) as the offline network does:
 Once per window (``window_s``, a whole number of periods) every source's v_ref moves by ``v_ref_gain`` x (nominal -
 the buses' mean measured voltage over the window), within ``v_ref_max_offset_V`` of its configured value; this
 restores the bus voltage while the terminals move to share the load; a disconnected source's v_ref goes to the
@@ -31,6 +34,77 @@ RATE_TAU_S = 1e-3  # the filter on P^{r,in}'s rate, which a late message is carr
 FORECAST_MARGIN = 0.05  # the layer's load box is widened by this fraction for the feasibility checks
 
 
+class Sharing:
+    """The layer's per-sample part, which each source forms itself from the grid sample (live: its daemon, from
+    PREFIX/RIG/grid; offline: service.network.netsim, from what its link delivers): P^{r,in}_s and its filtered rate.
+
+    * ``mode = "none"``: P^{r,in}_s = -P_s, the source's own lines;
+    * ``mode = "live-sum"``: P^{r,in}_s = -alpha_s sum_k P_k over the connected sources carrying at least
+      ``carry_power_W`` (|P_k|), alpha_s = share_s / (their shares' sum); a source that connected at sample k_c takes
+      share_s min(1, (k - k_c) / plug_in_ramp ticks).
+
+    Its rate dP^{r,in}/dt is filtered (RATE_TAU_S) over the samples since the previous step (none at the first): a
+    late message is carried forward along it. Pure; the same grid samples in the same order give the same bits,
+    whoever steps it, so a source that gets every sample forms what the layer's own instance forms."""
+
+    def __init__(self, shares: list[float], T: float, mode: str, carry_power_W: float, plug_in_ramp_s: float,
+                 connected: list[bool]):
+        ns = self.ns = len(shares)
+        self.shares, self.T, self.mode, self.carry_power_W = list(shares), T, mode, carry_power_W
+        self.want_prev, self.want_rate = [0.0] * ns, [0.0] * ns
+        self.k_prev: int | None = None  # the sample of the previous step
+        self.ramp_ticks = int(round(plug_in_ramp_s / T))
+        self.was_connected = list(connected)
+        self.connected_at = [-1] * ns  # the sample each source last connected at (-1: connected from the start)
+        self.rate_alpha = T / (T + RATE_TAU_S)
+
+    @classmethod
+    def of(cls, net: NetworkScenario) -> Sharing:
+        """The sharing of a network scenario (its sources' shares, its layer's mode, idle power and plug-in ramp)."""
+        return cls([s.share for s in net.sources.values()], 1.0 / net.timing.control_rate_hz, net.layer.mode,
+                   net.layer.idle_power_W, net.layer.plug_in_ramp_s, [s.connected for s in net.sources.values()])
+
+    @classmethod
+    def of_role(cls, role, T: float) -> Sharing:
+        """A network source daemon's (schemas.component.NetworkRole) at its sample period T (s)."""
+        return cls(role.shares, T, role.sharing, role.carry_power_W, role.plug_in_ramp_s, role.sources_connected)
+
+    def step(self, k: int, P: list[float], connected: list[bool]) -> tuple[list[float], list[float]]:
+        """(P^{r,in} per source W, its filtered rate W/s) for sample k, from the power each source's lines draw (P,
+        W; 0 for a disconnected source) and which are connected."""
+        ns = self.ns
+        if self.mode == "live-sum":
+            shares = self.shares
+            if self.ramp_ticks:  # a source that just connected takes its share over plug_in_ramp_s
+                for j in range(ns):
+                    if connected[j] and not self.was_connected[j]:
+                        self.connected_at[j] = k
+                    self.was_connected[j] = connected[j]
+                shares = [sh * min(1.0, (k - self.connected_at[j]) / self.ramp_ticks) if self.connected_at[j] >= 0
+                          else sh for j, sh in enumerate(shares)]
+            carrying = [j for j in range(ns) if connected[j] and abs(P[j]) >= self.carry_power_W]
+            total = sum(P[j] for j in carrying)
+            weight = sum(shares[j] for j in carrying) or 1.0
+            want = [-(shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
+        else:
+            want = [-P[j] for j in range(ns)]
+        # its rate, filtered: a message carries both, and a late one is carried forward by its age; over the samples
+        # since the previous step (a source that misses grid samples skips some), none at the first
+        k_prev = self.k_prev
+        dt = (k - k_prev) * self.T if k_prev is not None and k > k_prev else 0.0
+        for j in range(ns):
+            raw = (want[j] - self.want_prev[j]) / dt if dt else 0.0
+            self.want_rate[j] += self.rate_alpha * (raw - self.want_rate[j])
+            self.want_prev[j] = want[j]
+        self.k_prev = k
+        return want, self.want_rate
+
+    def alpha(self, connected: list[bool]) -> list[float]:
+        """alpha_s over the connected sources (no ramp, no carrying threshold): what the window message states."""
+        weight = sum(sh for sh, c in zip(self.shares, connected, strict=True) if c) or 1.0
+        return [sh / weight if c else 0.0 for sh, c in zip(self.shares, connected, strict=True)]
+
+
 class InterconnectionLayer:
     """The layer's state over a run (see the module docstring). ``loads``: the network plant, read only for its
     loads' profiles (``window_box``)."""
@@ -45,12 +119,7 @@ class InterconnectionLayer:
         self.v_ref0 = [s.controller.v_ref_V for s in net.sources.values()]
         self.v_ref = list(self.v_ref0)  # what each source's v_ref was last moved to (V)
         self.taus = source_taus(net)
-        self.want_prev, self.want_rate = [0.0] * ns, [0.0] * ns
-        self.k_prev: int | None = None  # the sample of the previous allocation
-        self.ramp_ticks = int(round(self.cfg.plug_in_ramp_s / self.T))
-        self.was_connected = [s.connected for s in net.sources.values()]
-        self.connected_at = [-1] * ns  # the sample each source last connected at (-1: connected from the start)
-        self.rate_alpha = self.T / (self.T + RATE_TAU_S)
+        self.sharing = Sharing.of(net)
         self.win_sum, self.win_n = 0.0, 0  # the buses' mean measured voltage, summed over the window
         self.win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
         self.win_delivered = self.win_load = 0.0
@@ -61,35 +130,30 @@ class InterconnectionLayer:
         return self.cfg.mode != "none"
 
     def allocate(self, k: int, P: list[float], connected: list[bool]) -> tuple[list[float], list[float]]:
-        """(P^{r,in} per source W, its filtered rate W/s) for tick k, from the power each source's lines draw (P, W;
-        0 for a disconnected source) and which are connected."""
-        lay, ns = self.cfg, self.ns
-        if lay.mode == "live-sum":
-            shares = self.shares
-            if self.ramp_ticks:  # a source that just connected takes its share over plug_in_ramp_s
-                for j in range(ns):
-                    if connected[j] and not self.was_connected[j]:
-                        self.connected_at[j] = k
-                    self.was_connected[j] = connected[j]
-                shares = [sh * min(1.0, (k - self.connected_at[j]) / self.ramp_ticks) if self.connected_at[j] >= 0
-                          else sh for j, sh in enumerate(shares)]
-            carrying = [j for j in range(ns) if connected[j] and abs(P[j]) >= lay.idle_power_W]
-            total = sum(P[j] for j in carrying)
-            weight = sum(shares[j] for j in carrying) or 1.0
-            want = [-(shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
-        else:
-            want = [-P[j] for j in range(ns)]
-        # its rate, filtered: a message carries both, and a late one is carried forward by its age; over the samples
-        # since the previous call (a live coordinator that answers only the newest sample skips some), none at the
-        # first
-        k_prev = self.k_prev
-        dt = (k - k_prev) * self.T if k_prev is not None and k > k_prev else 0.0
-        for j in range(ns):
-            raw = (want[j] - self.want_prev[j]) / dt if dt else 0.0
-            self.want_rate[j] += self.rate_alpha * (raw - self.want_rate[j])
-            self.want_prev[j] = want[j]
-        self.k_prev = k
-        return want, self.want_rate
+        """(P^{r,in} per source W, its filtered rate W/s) for tick k: the layer's own Sharing (what every source that
+        gets every grid sample forms itself)."""
+        return self.sharing.step(k, P, connected)
+
+    @property
+    def want_rate(self) -> list[float]:
+        return self.sharing.want_rate
+
+    @property
+    def want_prev(self) -> list[float]:
+        return self.sharing.want_prev
+
+    def step(self, k: int, grid: tuple, fresh: list[bool], active: list[bool], P: list[float] | None = None
+             ) -> tuple[int | None, list]:
+        """The layer after sample k: grid = (v, i_out, connected, bus_v, load_P) as the rig measured them (the grid
+        sample); the window sums, and at a window's end the v_ref moves (source index, V; for the sources whose
+        messages reach them: fresh) and the next window (window_end). The per-sample sharing is not here: each
+        source forms it itself (Sharing), and the layer's own (allocate) is for its record. P: the lines' powers
+        v i_out (0 when disconnected) if the caller has them already."""
+        v, i_out, connected, bus_v, load_P = grid
+        if P is None:
+            P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(self.ns)]
+        self.accumulate(bus_v, v, P, load_P)
+        return self.window_end(k, connected, fresh, active)
 
     def accumulate(self, bus_meas: list[float], term_v: list[float], P: list[float], load_W: list[float]) -> None:
         """One tick's window sums: the buses as measured (V), each terminal as measured (V), the powers the sources'

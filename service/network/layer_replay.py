@@ -1,6 +1,7 @@
 """Replay of a coordinator's log (energyctl coordinator --out): the layer rebuilt from the scenario in the log,
-fed what the coordinator saw each sample, must give every allocation it sent (P^{r,in}, its rate, v_ref) bit for
-bit, and each plug-in verdict it gave. Pure apart from reading the file: no clock, no socket."""
+fed what the coordinator saw each sample, must give every allocation it recorded (P^{r,in} and its rate as every
+source forms them from the grid sample, the v_ref it held) bit for bit, and each plug-in verdict it gave.
+Pure apart from reading the file: no clock, no socket."""
 
 from __future__ import annotations
 
@@ -134,8 +135,9 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
                 out["n_mismatches"] += 1
                 if len(out["mismatches"]) < 5:
                     out["mismatches"].append({"seq": k, "source": n, "logged": logged, "replayed": got})
-        layer.accumulate([tk["bus_v_mean"]] if tk["has_buses"] else [], v, P, [tk["load_W"]])
-        layer.window_end(k, connected, [True] * len(names), list(connected))  # as the coordinator: active = connected
+        # as the coordinator: active = connected
+        layer.step(k, (v, i_out, connected, [tk["bus_v_mean"]] if tk["has_buses"] else [], [tk["load_W"]]),
+                   [True] * len(names), list(connected))
     out["identical"] = (out["n_mismatches"] == 0 and not out["verdicts_differing"] and not out["offers_differing"]
                         and out["samples"] > 0)
     return out

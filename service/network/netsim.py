@@ -35,7 +35,7 @@ from service.core.feasibility import FeasibilityMonitor
 from service.core.interaction import outgoing_power_at
 from service.core.source import ACTIVE, IDLE, SourceController
 from service.metrics import network_metrics
-from service.network.layer import InterconnectionLayer, link_of
+from service.network.layer import InterconnectionLayer, Sharing, link_of
 from service.network.netrig import NetworkRigModel
 from service.sim import check_trace_size
 
@@ -103,7 +103,11 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         links.append((int(round(ln.delay_s / T)), ln.loss, ln.silent_from_s,
                       math.inf if ln.silent_until_s is None else ln.silent_until_s))
     link_rng = np.random.default_rng([net.seed, 0x11CC])
-    inbox: list[deque] = [deque() for _ in range(ns)]  # (arrival sample, t sent, P_in)
+    # each source forms its P^{r,in} from the grid samples its link delivers (layer.Sharing, as its daemon does live).
+    # A link that delivers every sample (delayed or not) gives the sharing the layer's own instance forms, stepped on
+    # the same samples: that one's answer travels; a lossy or silenced link's source steps its own on what arrives
+    own_sharing = [Sharing.of(net) if loss or silent is not None else None for _, loss, silent, _ in links]
+    inbox: list[deque] = [deque() for _ in range(ns)]  # (arrival sample, t sent, P_in, its rate) or the grid sample
     got = [(-math.inf, 0.0, 0.0)] * ns  # (t sent, P_in W, its rate W/s) of the newest P^{r,in} each source received
     events: list[Event] = []
     per_window = layer.per_window
@@ -145,14 +149,23 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
         want, want_rate = layer.allocate(k, P, connected)
         if k == 0 and net.start == "steady":  # a network already running: its messages from before t = 0 arrived
             got = [(t, want[j], 0.0) for j in range(ns)]
+        grid = None
         # the links, then each controller
         for j in range(ns):
             delay_k, loss, silent, back = links[j]
+            own = own_sharing[j]
             if not (silent is not None and silent <= t < back) and not (loss and link_rng.random() < loss):
-                inbox[j].append((k + delay_k, t, want[j], want_rate[j]))
+                if own is None:
+                    inbox[j].append((k + delay_k, t, want[j], want_rate[j]))
+                else:  # the grid sample itself (its P and breakers), shared by the links it goes on
+                    grid = grid or (k, list(P), list(connected))
+                    inbox[j].append((k + delay_k, t, grid, None))
             q = inbox[j]
             while q and q[0][0] <= k:
                 _, t_sent, value, rate = q.popleft()
+                if own is not None:
+                    w, r = own.step(*value)
+                    value, rate = w[j], r[j]
                 got[j] = (t_sent, value, rate)
             t_sent, value, rate = got[j]
             fresh = t - t_sent <= STALE_S
@@ -177,9 +190,9 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
             line_i[ln][k] = plant.i_l[j]
         n = k + 1
         # the layer's window: move v_ref to restore the buses, set the next window's feasibility ranges
-        layer.accumulate(rig.bus_measurements(), [s.v for s in samples], P, rig.load_powers())
         fresh_now = [t - got[j][0] <= STALE_S for j in range(ns)]  # the layer's messages reach it: v_ref moves
-        win_k, moves = layer.window_end(k, connected, fresh_now, [c.mode == ACTIVE for c in ctls])
+        win_k, moves = layer.step(k, ([s.v for s in samples], None, connected, rig.bus_measurements(),
+                                      rig.load_powers()), fresh_now, [c.mode == ACTIVE for c in ctls], P)
         for j, v_ref in moves:
             new = ctls[j].set_v_ref(v_ref)
             if new is not None:  # applied before the next tick: a log's v_ref event

@@ -8,11 +8,11 @@ import operator
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from schemas.codec import ALLOC, CMD, EST, GRID, LOOP, MEAS, TICK_IN, DecodeError, Z, admits
+from schemas.codec import ALLOC, CMD, EST, GRID, LOOP, MEAS, TICK_IN, WINDOW, DecodeError, Z, admits
 from schemas.component import ComponentConfig, config_from_dict
 from schemas.scenario import ScenarioError, scenario_from_dict
 
-CODECS = [MEAS, CMD, Z, TICK_IN, EST, LOOP, ALLOC]
+CODECS = [MEAS, CMD, Z, TICK_IN, EST, LOOP, ALLOC, WINDOW]
 FAST = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 

@@ -97,6 +97,9 @@ def _values(model: type[BaseModel], salt: int) -> BaseModel:
             vals[name] = (k + salt) % 2 == 0
         elif f.annotation is int:
             vals[name] = (1 << 33) + 1000 * salt + k
+        elif "maximum" in props[name]:  # a bounded fraction (alpha): inside its range, not integral
+            lo, hi = props[name].get("minimum", 0.0), props[name]["maximum"]
+            vals[name] = lo + (hi - lo) * (k + 1 + salt / 7.0) / (k + 3 + salt)
         else:
             vals[name] = (1 if props[name].get("minimum") == 0 else -1) * (1234.5678 * (k + 1) + salt / 7.0)
     return model(**vals)
