@@ -325,14 +325,16 @@ def identity(rig_log: Path, net) -> dict:
 
 def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[str] | None = None,
                progress: Callable[[str], None] | None = None, timeout_s: float | None = None, audit: bool = False,
-               wait_before_drop_us: int | None = None, check: bool = True) -> dict:
+               wait_before_drop_us: int | None = None, check: bool = True,
+               energyctl: list[str] | None = None) -> dict:
     """One lockstep run of ``scenario`` across ``n_hosts`` hosts (``placement``), to the rig's end; every process
     and namespace removed afterwards, also on failure or an interrupt (KeyboardInterrupt propagates).
 
     Returns ``{"ok", "why", "rig": the rig's result, "identity": identity(...), "cpu_s": per process between the
     rig's first sample and its end, "cpu_per_daemon_per_sample_us", "wall_per_sim_s", "startup_s", "wall_s",
     "rss_mb", "place"}``; ``ok``: the rig finished (exit 0, not diverged), no lockstep timeout, every daemon and the
-    coordinator stopped cleanly, and (``check``) the identity holds."""
+    coordinator stopped cleanly, and (``check``) the identity holds. ``energyctl``: the command that starts every
+    process (default ``python -m clients.cli``)."""
     from schemas.network import load_network
 
     say = progress or (lambda m: None)
@@ -345,8 +347,8 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
     t0 = time.monotonic()
     out: dict = {"place": place, "sources": len(sources), "hosts": len(place), "samples_planned":
                  int(round(duration * net.timing.control_rate_hz))}
-    with HostedNetwork(scenario, work, place, sets=sets, audit=audit,
-                       wait_before_drop_us=wait_before_drop_us) as hn:
+    with HostedNetwork(scenario, work, place, sets=sets, audit=audit, wait_before_drop_us=wait_before_drop_us,
+                       energyctl=energyctl) as hn:
         say(f"{len(place)} hosts (network namespaces): "
             + "; ".join(f"{h}: {', '.join(ids) if len(ids) <= 4 else f'{ids[0]} .. {ids[-1]}'}"
                         for h, ids in place.items()))

@@ -265,6 +265,8 @@ def run_hosted_demo(args: argparse.Namespace) -> int:
     if args.realtime or args.offline or args.secure:
         raise ScenarioError("demo --network --hosts: lockstep through the secure profile's routers (no --realtime, "
                             "--offline or --secure: it is always secure)")
+    if args.sources is not None and not 1 <= args.sources <= MAX_SOURCES:
+        raise ScenarioError(f"demo --sources: 1 to {MAX_SOURCES}, got {args.sources}")
     reason = unavailable_reason()
     if reason is not None:
         raise ScenarioError(f"demo --network --hosts: {reason}")
@@ -272,8 +274,6 @@ def run_hosted_demo(args: argparse.Namespace) -> int:
     work = Path(args.logs) / f"network-hosts-{stamp}"
     sets = list(args.set or [])
     if args.sources is not None:
-        if not 1 <= args.sources <= MAX_SOURCES:
-            raise ScenarioError(f"demo --sources: 1 to {MAX_SOURCES}, got {args.sources}")
         if args.network != str(NETWORK_DEMO_SCENARIO):
             raise ScenarioError("demo --sources N builds the radial network: give no scenario file to --network")
         scenario = write_radial(work / f"radial-{args.sources}.toml", args.sources,
