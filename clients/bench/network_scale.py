@@ -42,7 +42,7 @@ def bench_network_scale(offline_sizes=OFFLINE_SIZES, live_sizes=LIVE_SIZES, seco
         for n in live_sizes:
             scn = write_radial(base / f"radial-{n}.toml", n, seconds)
             r = run_hosted(scn, base / f"run-{n}", hosts, progress=lambda m, n=n: say(f"live {n}: {m}"),
-                           wait_before_drop_us=LOCKSTEP_WAIT_BEFORE_DROP_US)
+                           wait_before_drop_us=LOCKSTEP_WAIT_BEFORE_DROP_US, idle_probe_s=2.0)
             cpu = r["cpu_s"]
             rows[n] = {"ok": r["ok"], "why": r["why"], "identical_to_sim": r["identity"]["equal"],
                        "samples": r["rig"]["samples"], "wall_per_sim_s": r["wall_per_sim_s"],
@@ -52,6 +52,8 @@ def bench_network_scale(offline_sizes=OFFLINE_SIZES, live_sizes=LIVE_SIZES, seco
                                                           / r["rig"]["samples"] * 1e6, 1),
                        "cpu_coordinator_per_sample_us": round(cpu.get("coordinator", 0.0) / r["rig"]["samples"] * 1e6,
                                                               1),
+                       "idle_cpu_per_daemon_pct": r.get("idle_cpu_per_daemon_pct"),
+                       "rig_samples_per_s": round(r["rig"]["rate_achieved_hz"], 1),
                        "timeouts": r["rig"]["counters"]["timeouts"], "startup_s": r["startup_s"],
                        "rss_mb": r["rss_mb"], "run_wall_s": r["wall_s"]}
             say(f"live {n}: {rows[n]}")

