@@ -44,7 +44,7 @@ from schemas.scenario import ScenarioError
 ROUTER_FILE = "router.json5"
 # a lockstep network across hosts: how long a message waits for room in a full send queue before it is dropped (us;
 # Zenoh's default 1 000): at 32 daemons a sample's burst overfilled the routers' queues (decisions/0044)
-LOCKSTEP_WAIT_BEFORE_DROP_US = 20_000
+LOCKSTEP_WAIT_BEFORE_DROP_US = 200_000
 WAIT_BEFORE_DROP_MAX_US = 1_000_000
 CREDENTIALS_FILE = "credentials.txt"
 
