@@ -195,13 +195,18 @@ class HostedNetwork:
                     raise RuntimeError(f"the router of {h} exited ({p.returncode}): {log.read_text()[-2000:]}")
                 if log.read_text().count("listening") > self._listening.get(h, 0):
                     left.remove(h)
-                    self._raise_priority(p.pid)
+                    self.raise_priority(p.pid)
             if left and time.monotonic() > deadline:
                 raise RuntimeError(f"the routers of {left} did not listen within {timeout_s:g} s")
             time.sleep(0.05)
 
-    def _raise_priority(self, pid: int) -> None:
-        for tid in map(int, os.listdir(f"/proc/{pid}/task")):  # per thread: Zenoh's exist by now
+    def raise_priority(self, pid: int) -> None:
+        """Every thread of pid to the realtime path's priority (HostedNetwork.hot's)."""
+        try:
+            tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]  # per thread: Zenoh's exist by now
+        except OSError:  # it ended
+            return
+        for tid in tids:
             try:
                 if self.rt:
                     os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
@@ -234,13 +239,15 @@ class HostedNetwork:
     def start_network(self, sources: list[str], rig_out: Path | None = None, hot: bool = False,
                       source_args: list[str] | None = None) -> subprocess.Popen:
         """The sources' daemons, the coordinator and the rig (last: it waits for the others), lockstep, each on its
-        host; the rig's result is its last stdout line (--json). Returns the rig's process."""
+        host; the rig's result is its last stdout line (--json); ``hot``: each at the realtime path's priority (in
+        lockstep each blocks between samples: it takes the CPU only while a sample is under way). Returns the rig's
+        process."""
         scn, sets = str(self.scenario), self.set_args()
         for s in sources:
             self.start(s, self.host_of[s], ["run", "--network", scn, "--source", s, *sets, *(source_args or []),
                                             *self.zenoh_args(s)], hot=hot)
         self.start("coordinator", self.host_of["coordinator"], ["coordinator", scn, *sets,
-                                                                *self.zenoh_args("coordinator")])
+                                                                *self.zenoh_args("coordinator")], hot=hot)
         return self.start("rig", self.host_of["rig"], [
             "plant", "--config", scn, "--pacing", "lockstep", *sets, "--json",
             *(["--out", str(rig_out)] if rig_out else []), *self.zenoh_args("rig")], hot=hot)
@@ -326,7 +333,7 @@ def identity(rig_log: Path, net) -> dict:
 def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[str] | None = None,
                progress: Callable[[str], None] | None = None, timeout_s: float | None = None, audit: bool = False,
                wait_before_drop_us: int | None = None, check: bool = True,
-               energyctl: list[str] | None = None, idle_probe_s: float = 0.0) -> dict:
+               energyctl: list[str] | None = None, idle_probe_s: float = 0.0, hot: bool = True) -> dict:
     """One lockstep run of ``scenario`` across ``n_hosts`` hosts (``placement``), to the rig's end; every process
     and namespace removed afterwards, also on failure or an interrupt (KeyboardInterrupt propagates).
 
@@ -336,7 +343,10 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
     coordinator stopped on SIGTERM (exit 0, or ended by its shutdown grace: ``ended_by_shutdown_grace``), and
     (``check``) the identity holds. ``energyctl``: the command that starts every
     process (default ``python -m clients.cli``). ``idle_probe_s``: after the rig's end, measure the daemons' CPU for
-    this long with no sample coming (``idle_cpu_per_daemon_pct``, % of a CPU)."""
+    this long with no sample coming (``idle_cpu_per_daemon_pct``, % of a CPU). ``hot``: the rig, the coordinator and
+    the daemons raised to the realtime path's priority, as the routers, once every one is up (beside other work on the
+    machine, a starved sender's queue stayed full past the profile's wait and dropped half a sample's burst; raised
+    from the start, their start-ups starved the routers' logins)."""
     from schemas.network import load_network
 
     say = progress or (lambda m: None)
@@ -366,6 +376,9 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
         last_say = time.monotonic()
         while rig.poll() is None:
             if cpu0 is None and SAMPLING in rig_log.read_text(errors="replace"):
+                if hot:  # raised once up: 36 start-ups (imports) at SCHED_FIFO starved the routers' logins
+                    for p in hn.procs.values():
+                        hn.raise_priority(p.pid)
                 cpu0 = hn.cpu_s()
                 out["startup_s"] = round(time.monotonic() - t0, 1)
                 out["rss_mb"] = round(hn.rss_mb())
