@@ -395,8 +395,12 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
             time.sleep(0.05)
         cpu1 = hn.cpu_s()  # the others, idle since the rig's last sample
         out["wall_s"] = round(time.monotonic() - t0, 1)
-        if rig.returncode != 0 or cpu0 is None:
+        if rig.returncode != 0 or SAMPLING not in rig_log.read_text(errors="replace"):
             raise RuntimeError(f"the rig failed (exit {rig.returncode}): {hn.log('rig', 2000)}")
+        if cpu0 is None:  # a run shorter than one look at the rig's log: no CPU figures
+            cpu0 = {}
+            out.setdefault("startup_s", out["wall_s"])
+            out.setdefault("rss_mb", None)
         res = last_json(work / "rig.out")
         if idle_probe_s:  # what the daemons use with no sample coming: Zenoh's and their own timers
             t_idle = time.monotonic()

@@ -311,8 +311,9 @@ def run_hosted_demo(args: argparse.Namespace) -> int:
           f"after {res['startup_s']:.1f} s ({res['rss_mb']} MB resident); {rig['samples']} samples in "
           f"{rig['wall_s']:.1f} s ({res['wall_per_sim_s']:.1f} s per simulated second); lockstep timeouts "
           f"{rig['counters']['timeouts']}")
-    print(f"CPU per daemon per sample {res['cpu_per_daemon_per_sample_us']:.0f} us; all processes "
-          f"{res['cpu_total_per_sample_us']:.0f} us per sample")
+    if res["cpu_per_daemon_per_sample_us"] is not None:
+        print(f"CPU per daemon per sample {res['cpu_per_daemon_per_sample_us']:.0f} us; all processes "
+              f"{res['cpu_total_per_sample_us']:.0f} us per sample")
     if ident.get("equal"):
         print(f"lockstep across the hosts equals energyctl sim of the same scenario: every v, i, u and command of "
               f"{res['sources']} sources and every bus v, {ident['samples']} samples, bit for bit")
