@@ -87,6 +87,31 @@ def test_a_failed_run_leaves_no_namespace_and_no_process(root, tmp_path):
     assert not _processes_under(tmp_path)
 
 
+def test_the_demo_interrupted_exits_130_and_leaves_nothing(root, tmp_path):
+    """energyctl demo --network --hosts: SIGINT while its processes start (progress on stderr says so): exit 130,
+    every namespace and process gone."""
+    import signal
+
+    from clients.live import child_env
+
+    before = _namespaces()
+    p = subprocess.Popen([sys.executable, "-m", "clients.cli", "demo", "--network", "--hosts", "3", "--sources", "4",
+                          "--logs", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=child_env())
+    try:
+        for line in p.stderr:  # progress
+            if "waiting for them to connect" in line:
+                break
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 130, (out, err)
+    assert "interrupted" in err and _namespaces() <= before and not _processes_under(tmp_path)
+
+
 # ---------------------------------------------------------------------------------------------- without root
 
 @pytest.mark.parametrize("n", [1, 4, 5, 16, 32, 64])
