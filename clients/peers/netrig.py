@@ -497,7 +497,7 @@ def write_rig_log(path: str, res: NetworkResult, prefix: str, summary: dict) -> 
     f.metadata("rig", {"json": json.dumps({k: v for k, v in summary.items() if k != "metrics"})})
     for el in (*res.sources, *res.buses, *res.lines):
         f.channel(f"{base}/{el}/plant", "energyctl.Plant")
-    cmds = [n for n, row in res.sources.items() if "cmd_du" in row]  # lockstep: each source's answers
+    cmds = {n for n, row in res.sources.items() if "cmd_du" in row}  # lockstep: each source's answers
     for n in cmds:
         f.channel(f"{base}/{n}/cmd", "energyctl.Command")
     f.channel(f"{base}/layer/events", "energyctl.Event")
