@@ -498,8 +498,9 @@ def write_rig_log(path: str, res: NetworkResult, prefix: str, summary: dict) -> 
     for el in (*res.sources, *res.buses, *res.lines):
         f.channel(f"{base}/{el}/plant", "energyctl.Plant")
     cmds = {n for n, row in res.sources.items() if "cmd_du" in row}  # lockstep: each source's answers
-    for n in cmds:
-        f.channel(f"{base}/{n}/cmd", "energyctl.Command")
+    for n in res.sources:  # in scenario order: the same channel ids every run
+        if n in cmds:
+            f.channel(f"{base}/{n}/cmd", "energyctl.Command")
     f.channel(f"{base}/layer/events", "energyctl.Event")
     t = res.t.tolist()
     src = {n: {k: v.tolist() for k, v in row.items()} for n, row in res.sources.items()}
