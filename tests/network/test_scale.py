@@ -4,7 +4,7 @@ through the secure profile's routers, in lockstep, equal to ``energyctl sim`` in
 after a run that fails; and, without root, the pieces: the scenario builder, the placement, the rig's command log
 and the identity check.
 
-The 32-source run (``energyctl demo --network --hosts 4 --sources 32``, about a minute and 2.6 GB here) and the
+The 32-source run (``energyctl demo --network --hosts 4 --sources 32``, under a minute and 2.7 GB here) and the
 scaling figures (``energyctl bench network-scale``) are in docs/benchmarks.md; CI runs the 16-source one, 0.05 s of
 sample time (500 samples at 10 kHz), about 25 s here."""
 
