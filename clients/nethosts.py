@@ -200,15 +200,16 @@ class HostedNetwork:
                 raise RuntimeError(f"the routers of {left} did not listen within {timeout_s:g} s")
             time.sleep(0.05)
 
-    def raise_priority(self, pid: int) -> None:
-        """Every thread of pid to the realtime path's priority (HostedNetwork.hot's)."""
+    def raise_priority(self, pid: int, fifo: bool | None = None) -> None:
+        """Every thread of pid to the realtime path's priority: SCHED_FIFO where allowed (``fifo`` None or True),
+        else (or ``fifo`` False) nice -10."""
         try:
             tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]  # per thread: Zenoh's exist by now
         except OSError:  # it ended
             return
         for tid in tids:
             try:
-                if self.rt:
+                if self.rt and fifo is not False:
                     os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
                 else:
                     os.setpriority(os.PRIO_PROCESS, tid, NICE)
@@ -344,9 +345,10 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
     (``check``) the identity holds. ``energyctl``: the command that starts every
     process (default ``python -m clients.cli``). ``idle_probe_s``: after the rig's end, measure the daemons' CPU for
     this long with no sample coming (``idle_cpu_per_daemon_pct``, % of a CPU). ``hot``: the rig, the coordinator and
-    the daemons raised to the realtime path's priority, as the routers, once every one is up (beside other work on the
-    machine, a starved sender's queue stayed full past the profile's wait and dropped half a sample's burst; raised
-    from the start, their start-ups starved the routers' logins)."""
+    the daemons raised to nice -10 once every one is up, below the routers (SCHED_FIFO where allowed): beside other
+    work on the machine, a starved sender's queue stayed full past the profile's wait and dropped half a sample's
+    burst; raised from the start, their start-ups starved the routers' logins; raised to SCHED_FIFO, a busy one
+    starved the routers and a sample's measurements were lost at the start of a run."""
     from schemas.network import load_network
 
     say = progress or (lambda m: None)
@@ -376,9 +378,11 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
         last_say = time.monotonic()
         while rig.poll() is None:
             if cpu0 is None and SAMPLING in rig_log.read_text(errors="replace"):
-                if hot:  # raised once up: 36 start-ups (imports) at SCHED_FIFO starved the routers' logins
+                if hot:  # raised once up (36 start-ups at SCHED_FIFO starved the routers' logins), to nice -10, not
+                    # SCHED_FIFO: a FIFO process busy for a while (a first sample, a coordinator's start) is not
+                    # time-sliced, and two of them kept the routers (FIFO too) from draining their queues
                     for p in hn.procs.values():
-                        hn.raise_priority(p.pid)
+                        hn.raise_priority(p.pid, fifo=False)
                 cpu0 = hn.cpu_s()
                 out["startup_s"] = round(time.monotonic() - t0, 1)
                 out["rss_mb"] = round(hn.rss_mb())
