@@ -200,9 +200,9 @@ class HostedNetwork:
                 raise RuntimeError(f"the routers of {left} did not listen within {timeout_s:g} s")
             time.sleep(0.05)
 
-    def raise_priority(self, pid: int, fifo: bool | None = None) -> None:
-        """Every thread of pid to the realtime path's priority: SCHED_FIFO where allowed (``fifo`` None or True),
-        else (or ``fifo`` False) nice -10."""
+    def raise_priority(self, pid: int, fifo: bool | None = None, priority: int = RT_PRIORITY) -> None:
+        """Every thread of pid to the realtime path's priority: SCHED_FIFO ``priority`` where allowed (``fifo`` None
+        or True), else (or ``fifo`` False) nice -10."""
         try:
             tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]  # per thread: Zenoh's exist by now
         except OSError:  # it ended
@@ -210,7 +210,7 @@ class HostedNetwork:
         for tid in tids:
             try:
                 if self.rt and fifo is not False:
-                    os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
+                    os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
                 else:
                     os.setpriority(os.PRIO_PROCESS, tid, NICE)
             except OSError:  # a thread that ended, or no CAP_SYS_NICE: it runs as it is
@@ -345,10 +345,9 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
     (``check``) the identity holds. ``energyctl``: the command that starts every
     process (default ``python -m clients.cli``). ``idle_probe_s``: after the rig's end, measure the daemons' CPU for
     this long with no sample coming (``idle_cpu_per_daemon_pct``, % of a CPU). ``hot``: the rig, the coordinator and
-    the daemons raised to nice -10 once every one is up, below the routers (SCHED_FIFO where allowed): beside other
-    work on the machine, a starved sender's queue stayed full past the profile's wait and dropped half a sample's
-    burst; raised from the start, their start-ups starved the routers' logins; raised to SCHED_FIFO, a busy one
-    starved the routers and a sample's measurements were lost at the start of a run."""
+    the daemons raised to nice -10 once every one is up, below the routers (SCHED_FIFO where allowed); beside other
+    work on the machine a starved sender's queue stayed full past the profile's wait and dropped half a sample's
+    burst (decisions/0044)."""
     from schemas.network import load_network
 
     say = progress or (lambda m: None)
@@ -378,9 +377,9 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
         last_say = time.monotonic()
         while rig.poll() is None:
             if cpu0 is None and SAMPLING in rig_log.read_text(errors="replace"):
-                if hot:  # raised once up (36 start-ups at SCHED_FIFO starved the routers' logins), to nice -10, not
-                    # SCHED_FIFO: a FIFO process busy for a while (a first sample, a coordinator's start) is not
-                    # time-sliced, and two of them kept the routers (FIFO too) from draining their queues
+                if hot:  # raised once up (36 start-ups at SCHED_FIFO starved the routers' logins), to nice -10:
+                    # raised to SCHED_FIFO (at or below the routers'), the first samples' messages were lost in 2 of
+                    # 4 runs under load (decisions/0044)
                     for p in hn.procs.values():
                         hn.raise_priority(p.pid, fifo=False)
                 cpu0 = hn.cpu_s()
