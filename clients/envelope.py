@@ -20,8 +20,12 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 
 import numpy as np
+
+from service.metrics import max_dev_pct, worst_back
+from service.metrics import step_metrics as service_step_metrics
 
 LEVELS_W = (-2400.0, -1200.0, -300.0, 0.0, 300.0, 1200.0, 2400.0)
 TIMINGS = ((10_000.0, 3), (1_000.0, 1), (1_000.0, 2))  # (control rate Hz, loop delay samples)
@@ -51,27 +55,8 @@ def single_overrides(P1: float, P2: float, rate_hz: float, delay: int, kind: str
 
 
 def step_metrics(t: np.ndarray, v: np.ndarray, v_ref: float, t_step: float) -> dict:
-    """Peak deviation (%), time outside the band (s) and back in it for good (s after the step; None: not by the
-    end) after t_step, steady deviation over the last TAIL_S (%), the largest deviation before the step (%), and
-    whether v left +-DIVERGE."""
-    dev = np.abs(v - v_ref) / v_ref
-    after = t >= t_step
-    outside = dev > BAND
-    dt = float(t[1] - t[0]) if len(t) > 1 else 0.0
-    idx = np.nonzero(outside & after)[0]
-    if not len(idx):
-        back = 0.0
-    elif idx[-1] + 1 < len(t):
-        back = float(t[idx[-1] + 1] - t_step)
-    else:
-        back = None
-    before = (t >= t_step - 0.1) & ~after
-    return {"diverged": bool(np.any(dev >= DIVERGE)) or len(t) == 0,
-            "peak_pct": float(dev[after].max() * 100) if after.any() else None,
-            "outside_s": float(np.count_nonzero(outside & after) * dt),
-            "back_s": back,
-            "steady_pct": float(dev[t >= t[-1] - TAIL_S].max() * 100) if len(t) else None,
-            "before_pct": float(dev[before].max() * 100) if before.any() else None}
+    """A step's metrics against +-BAND, +-DIVERGE and over the last TAIL_S (service.metrics.step_metrics)."""
+    return service_step_metrics(t, v, v_ref, t_step, BAND, DIVERGE, TAIL_S)
 
 
 def single_worker(job: tuple[str, list[str]]) -> dict:
@@ -113,12 +98,11 @@ def net_worker(job: tuple[str, list[str]]) -> dict:
     res = run_network(net)
     m = res.metrics
     v_nom = net.nominal_v_V
-    tail = res.t >= res.t[-1] - TAIL_S
-    steady = max(float(np.abs(v[tail] - v_nom).max()) / v_nom * 100 for v in res.buses.values())
+    steady = max(max_dev_pct(res.t, v, res.t[-1] - TAIL_S, math.inf, v_nom) for v in res.buses.values())
     step = [e for e in m["events"] if e["kind"] == "load" and abs(e["t_s"] - NET_STEP_S) < 1e-9]
     backs = [b for e in step for b in e["bus_back_in_band_s"].values()]
     errs = [abs(s["sharing_error_pp"]) for s in m["sources"].values() if s["sharing_error_pp"] is not None]
-    return {"diverged": bool(m["diverged"]), "back_s": None if None in backs else max(backs, default=0.0),
+    return {"diverged": bool(m["diverged"]), "back_s": worst_back(backs),
             "steady_pct": steady, "sharing_pp": max(errs, default=None)}
 
 

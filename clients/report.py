@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from service.logio.reader import scan
-from service.sim import BAND_SETTLE, settle_time
+from service.metrics import BAND_SETTLE, max_abs, regulation, rms
 
 
 class ReportError(RuntimeError):
@@ -67,13 +67,9 @@ def state(log: dict) -> dict:
 
 def summary_metrics(log: dict) -> dict:
     st, v_ref = state(log), log["v_ref"]
-    t, v = st["t"], st["v"]
-    dev = np.abs(v - v_ref)
-    settle = settle_time(t, dev, BAND_SETTLE * v_ref)
+    t = st["t"]
     cmd = log["series"].get("cmd", {}).get("du_dt", np.zeros(1))
-    tail = slice(int(len(t) * 0.9), len(t))
-    return {"settle_s": settle, "v_min": float(v.min()), "v_max": float(v.max()), "ss_error": float(dev[tail].mean()),
-            "rms_du_dt": float(np.sqrt(np.mean(cmd ** 2))), "max_abs_du_dt": float(np.abs(cmd).max()),
+    return {**regulation(t, st["v"], v_ref, BAND_SETTLE), "rms_du_dt": rms(cmd), "max_abs_du_dt": max_abs(cmd),
             "duration_s": float(t[-1] - t[0]) if len(t) > 1 else 0.0,
             "source": "plant (true state)" if "plant" in log["series"] else "measurements"}
 

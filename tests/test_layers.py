@@ -28,10 +28,14 @@ SERVICE_LAYERS = {
     "service.core": ("service.core", "service._kernel"),
     "service.plant": ("service.core.types", "service.plant", "service._kernel"),
     "service.forecast": ("service.core", "service.plant"),
-    "service.sim": ("service.core", "service.plant", "service.forecast"),
+    # the run metrics (settle, band, sharing ...) every driver, stand-in, report and bench reads: over the core's
+    # mode names only
+    "service.metrics": ("service.core.source",),
+    "service.sim": ("service.core", "service.plant", "service.forecast", "service.metrics"),
     # the network wing: the pure layer, the offline network, the rig's model; its replay reads a log besides
     "service.network.layer_replay": ("service.network.layer", "service.logio", "service.plant"),
-    "service.network": ("service.core", "service.plant", "service.forecast", "service.sim", "service.network"),
+    "service.network": ("service.core", "service.plant", "service.forecast", "service.sim", "service.metrics",
+                        "service.network"),
     "service.priority": (),
     # the recorder and reader: what a log holds (the core's records), the recorder process's priority
     "service.logio": ("service.logio", "service.core", "service.priority"),
@@ -41,7 +45,7 @@ SERVICE_LAYERS = {
     "service.daemon": ("service.daemon", "service.core", "service.forecast", "service.logio", "service.network",
                        "service.plant", "service.priority", "service._kernel"),
 }
-PURE = ("service.core", "service.plant", "service.forecast", "service.sim", "service.network")
+PURE = ("service.core", "service.plant", "service.forecast", "service.metrics", "service.sim", "service.network")
 IMPURE_MODULES = ("time", "datetime", "threading", "_thread", "concurrent", "asyncio", "socket", "ssl", "selectors",
                   "subprocess", "multiprocessing", "signal", "os", "ctypes", "zenoh", "mcap", "random", "secrets")
 

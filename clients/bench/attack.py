@@ -70,8 +70,9 @@ def run_case(case: str, scn, base: Path, rate_hz: float, delay: int, at_s: float
              flood_s: float, stall_s: float = 0.6) -> dict:
     import zenoh
 
-    from clients.bench.recovery import Rig, max_dev_pct, recovery_after
+    from clients.bench.recovery import Rig, recovery_after
     from service.logio.reader import messages
+    from service.metrics import max_dev_pct
 
     v_ref = scn.controller.v_ref_V
     attack_s = flood_s if case == "flood" else 0.5  # plant time the other attacks are given to act

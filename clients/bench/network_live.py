@@ -17,8 +17,7 @@ import numpy as np
 
 from clients.netlive import LiveNetwork
 from clients.peers.netrig import read_rig_log
-from service.network.netsim import _back_in_band, acceptance_checks
-from service.sim import BAND_SETTLE
+from service.metrics import BAND_SETTLE, acceptance_checks, back_in_band, worst_back
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "clients" / "embedded" / "network-demo.toml"
@@ -71,13 +70,8 @@ def _no_events(src: Path, work: Path, duration_s: float) -> str:
 def _back_after(rig, t0: float) -> float | None:
     """Seconds from t0 until every bus stays within +-2 % of nominal to the end of the run (None: never)."""
     v_nom = rig.net.nominal_v_V
-    worst = 0.0
-    for v in rig.buses.values():
-        b = _back_in_band(rig.t, v, t0, float(rig.t[-1]) + 1e-9, v_nom, BAND_SETTLE)
-        if b is None:
-            return None
-        worst = max(worst, b)
-    return worst
+    return worst_back(back_in_band(rig.t, v, t0, float(rig.t[-1]) + 1e-9, v_nom, BAND_SETTLE)
+                      for v in rig.buses.values())
 
 
 def _bus_min_after(rig, t0: float) -> float:
@@ -101,8 +95,7 @@ def plug_in(work: Path, realtime: bool, sets: list[str]) -> dict:
     hs = json.loads((live.workdir / "S3.status.json").read_text())["network"]["handshake"]
     return {"asked_at_s": 0.8, "closed_at_s": ev["t_s"], "handshake_s": ev["t_s"] - 0.8,
             "requests": hs["requests"], "forecast_ms": (hs["last"] or {}).get("forecast_ms"),
-            "bus_back_in_band_s": max(ev["bus_back_in_band_s"].values()) if None not in
-            ev["bus_back_in_band_s"].values() else None, "inrush_A": ev.get("inrush_A"),
+            "bus_back_in_band_s": worst_back(ev["bus_back_in_band_s"].values()), "inrush_A": ev.get("inrush_A"),
             "bus_move_V": max((ev.get("bus_move_V") or {}).values(), default=None),
             "checks_failed": [c["check"] for c in acceptance_checks(rig) if not c["ok"]]}
 

@@ -9,6 +9,7 @@ port, lets a test or a bench signal any of them, and reads the controller's stat
 from __future__ import annotations
 
 import json
+import math
 import signal
 import subprocess
 import tempfile
@@ -23,7 +24,7 @@ from schemas.component import ZenohConfig, merge_tables
 from schemas.scenario import Scenario
 from service.daemon.bus import free_tcp_port
 from service.logio.reader import messages as read_messages
-from service.sim import BAND_SETTLE, settle_time
+from service.metrics import BAND_SETTLE, back_in_band, max_dev_pct
 
 
 class Rig:
@@ -144,13 +145,7 @@ class Rig:
 
 def recovery_after(t: np.ndarray, v: np.ndarray, t_back: float, v_ref: float) -> float | None:
     """Seconds from t_back until v is within +-2 % of v_ref to the end of the trace (None: not by the end)."""
-    after = t >= t_back
-    return settle_time(t[after], np.abs(v[after] - v_ref), BAND_SETTLE * v_ref, t_back)
-
-
-def max_dev_pct(t: np.ndarray, v: np.ndarray, t0: float, t1: float, v_ref: float) -> float | None:
-    sel = (t >= t0) & (t < t1)
-    return float(np.max(np.abs(v[sel] - v_ref)) / v_ref * 100) if np.any(sel) else None
+    return back_in_band(t, v, t_back, math.inf, v_ref, BAND_SETTLE)
 
 
 def recovery(scn: Scenario, workdir: str | None = None, progress=print, realtime: bool = False,

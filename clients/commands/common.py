@@ -64,13 +64,15 @@ def network_summary(m: dict) -> dict:
     """A network run in one row: diverged, the worst sharing error (pp), the lowest bus voltage (V), the largest
     steady bus deviation (%), the longest time a bus took back into +-2 % after an event (s; None: not by the next),
     the time its sources spent falling back (s)."""
+    from service.metrics import worst_back
+
     backs = [v for e in m["events"] for v in e["bus_back_in_band_s"].values()]
     errs = [abs(s["sharing_error_pp"]) for s in m["sources"].values() if s["sharing_error_pp"] is not None]
     return {"diverged": m["diverged"], "worst_sharing_pp": max(errs, default=None),
             "bus_min_V": min((b["v_min"] for b in m["buses"].values() if b["v_min"] is not None), default=None),
             "worst_bus_ss_dev_pct": max((b["ss_dev_pct"] for b in m["buses"].values()
                                          if b["ss_dev_pct"] is not None), default=None),
-            "worst_bus_back_s": None if None in backs else max(backs, default=0.0),
+            "worst_bus_back_s": worst_back(backs),
             "fallback_s": sum(s["fallback_s"] or 0.0 for s in m["sources"].values()),
             "accepted": m["accepted"], "failures": m["failures"]}
 

@@ -184,7 +184,8 @@ def run_network_demo(args: argparse.Namespace) -> int:
     from clients.netlive import LiveNetwork
     from clients.peers.netrig import read_rig_log
     from schemas.network import load_network
-    from service.network.netsim import acceptance_checks, run_network
+    from service.metrics import acceptance_checks
+    from service.network.netsim import run_network
 
     if args.offline or args.secure:
         raise ScenarioError("demo --network: runs on loopback Zenoh (no --offline or --secure)")

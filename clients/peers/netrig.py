@@ -47,8 +47,9 @@ from schemas.netlive import NetworkRigConfig
 from schemas.network import NetworkScenario
 from service.daemon.bus import close_session, key, open_session, publisher, queued
 from service.daemon.failure import Failure, guarded
+from service.metrics import acceptance_checks, network_metrics
 from service.network.netrig import NetworkRigModel
-from service.network.netsim import Event, NetworkResult, acceptance_checks, network_metrics
+from service.network.netsim import Event, NetworkResult
 
 _NO_ANSWER = (float("nan"), float("nan"))  # a lockstep sample a source did not answer, in the command log
 CUT_WINDOW_S = 2.0  # sources whose tokens went this long before the rig found itself cut off went with the cut

@@ -9,7 +9,6 @@ import sys
 import threading
 import time
 from array import array
-from collections import deque
 from pathlib import Path
 from queue import Empty
 
@@ -20,9 +19,9 @@ from clients.peers.common import matched, wait_alive
 from schemas.codec import CMD, MEAS, PLANT, DecodeError
 from schemas.component import PlantPeerConfig
 from service.daemon.bus import close_session, key, open_session, publisher, queued
-from service.plant.profiles import Profile
-from service.plant.rlc import CommandSchedule, RLCPlant, Sensor, load_current
-from service.sim import compute_metrics, profile_events, substeps, trace_divergence
+from service.metrics import compute_metrics, max_dev_pct
+from service.plant.rig import RigModel
+from service.sim import profile_events, trace_divergence
 
 PLANT_TRACE = ("t", "i", "v", "u", "i_load", "P_l", "i_meas", "v_meas", "u_meas", "i_load_meas", "du_dt",
                "du_dt_applied", "y_z_true", "y_ref_true")
@@ -96,20 +95,20 @@ class PlantRig:
 
     def __init__(self, cfg: PlantPeerConfig, stop: threading.Event, log=sys.stderr):
         self.cfg, self.stop, self.log = cfg, stop, log
-        self.load = Profile(cfg.load, cfg.base_dir)
-        dist = Profile(cfg.disturbance, cfg.base_dir) if cfg.disturbance is not None else None
-        self.plant = RLCPlant(cfg.plant, self.load, dist)
-        self.sensor = Sensor(cfg.sensor, cfg.seed)
+        self.lockstep = cfg.pacing == "lockstep"
         self.T = 1.0 / cfg.sample_rate_hz
-        self.n_sub = substeps(self.T, cfg.plant_step_s)
+        # the plant side, as the offline loop runs it (service.sim): lockstep applies each answer through the same
+        # delay line and schedule
+        self.rig = RigModel(cfg.plant, cfg.load, cfg.disturbance, cfg.sensor, cfg.seed, cfg.base_dir, self.T,
+                            cfg.plant_step_s, cfg.delay_samples, realtime=not self.lockstep,
+                            apply_delay_samples=cfg.realtime_apply_delay_samples)
+        self.load, self.plant, self.sched = self.rig.load, self.rig.plant, self.rig.sched
         self.N = N = int(round(cfg.duration_s / self.T))
         self.t_meas, self.t_cmd, self.t_plant = (key(cfg.prefix, cfg.controller_id, leaf)
                                                  for leaf in ("meas", "cmd", "plant"))
-        self.lockstep = cfg.pacing == "lockstep"
         self.timeout_ns = int(cfg.lockstep_timeout_s * 1e9)
         self.period_ns = int(round(self.T * 1e9))
         self.spin_ns = int(cfg.realtime_spin_us * 1e3)
-        self.sched = CommandSchedule(0 if self.lockstep else cfg.realtime_apply_delay_samples)
         # the trace, PLANT_TRACE's columns row after row: 112 B a sample (a list of tuples took 496 B: 18 GB for an
         # hour at 10 kHz)
         self.rows = array("d")
@@ -166,15 +165,14 @@ class PlantRig:
 
     def sample(self) -> None:
         """The sampling loop: N samples, or until stop."""
-        cfg, plant, load, sensor, sched, rec, pub = (self.cfg, self.plant, self.load, self.sensor, self.sched,
-                                                     self.rec, self.pub)
+        cfg, plant, sched, rec, pub = self.cfg, self.plant, self.sched, self.rec, self.pub
+        sample, command, take, advance = self.rig.sample, self.rig.command, self.rig.take, self.rig.advance
         counters, send_ns, rows = self.counters, self.send_ns, self.rows
         sent_on_time, answered_in_time = self.sent_on_time, self.answered_in_time
         t_meas, t_cmd, t_plant = self.t_meas, self.t_cmd, self.t_plant
         poll_until, await_answer, stop = self.poll_until, self.await_answer, self.stop
-        N, T, n_sub, lockstep, period_ns = self.N, self.T, self.n_sub, self.lockstep, self.period_ns
-        delay: deque[float] = deque([0.0] * cfg.delay_samples)
-        r_latest = 0.0
+        N, lockstep, period_ns = self.N, self.lockstep, self.period_ns
+        R, v_ref = cfg.plant.R_ohm, cfg.v_ref_V
         now_ns = time.monotonic_ns
         next_ns = now_ns() + period_ns
         # the CPU budget over the samples: this process's share and how busy the machine's CPUs were (the stack's
@@ -188,9 +186,7 @@ class PlantRig:
                 poll_until(next_ns)
                 next_ns += period_ns
             t = plant.t
-            P_l = load.value(t)
-            i2 = load_current(P_l, plant.v, plant.v_min)
-            s = sensor.measure(k, t, plant.i, plant.v, plant.u, i2)
+            s = sample(k)
             send_ns[k] = now_ns()
             if not lockstep and k > 0 and send_ns[k] - (next_ns - period_ns) > period_ns // 2:
                 counters["plant_late_samples"] += 1  # this stand-in missed its own instant (the VM stalled it)
@@ -198,16 +194,15 @@ class PlantRig:
                 sent_on_time[k] = 1
             pub.put(MEAS.encode(k, t, s.i, s.v, s.u, s.i_load))
             counters["samples"] += 1
-            du_for_k = math.nan
-            if lockstep:
+            du_for_k = du_next = math.nan
+            if lockstep:  # through the loop delay, as offline: a missing answer is the previous one's plan, or a hold
                 r = await_answer(k)
                 if r is None:
-                    counters["timeouts"] += 1  # no answer: the previous command's plan, else hold the source voltage
+                    counters["timeouts"] += 1
+                    r_apply = command(k, None)
                 else:
-                    sched.arrive(k, *r)
-                r_latest, fresh = sched.take(k)
-                if fresh:
-                    du_for_k = r_latest
+                    du_for_k, du_next = r
+                    r_apply = command(k, du_for_k, du_next)
             else:
                 if k == 0:
                     # arm: the converter is enabled by the controller's first answer, and the sampling clock
@@ -221,26 +216,22 @@ class PlantRig:
                     next_ns = now_ns() + period_ns
                 # fixed schedule, as a digital modulator (CommandSchedule): the command answering sample k - d
                 # acts over this period, else its predecessor's plan, else u is held
-                r_latest, fresh = sched.take(k)
+                r_apply, r_latest, fresh = take(k)
                 if fresh:
-                    du_for_k = r_latest
+                    du_for_k, du_next = r_latest, sched.prev[1]
                     if k >= sched.d:
                         answered_in_time[k - sched.d] = 1
-            if cfg.delay_samples:
-                delay.append(r_latest)
-                r_apply = delay.popleft()
-            else:
-                r_apply = r_latest
+            P_l, i2 = self.rig.P_l, self.rig.i_load
             pi, pv, pu = plant.i, plant.v, plant.u
             um = plant.u_m(t)
             rows.extend((t, pi, pv, pu, i2, P_l, s.i, s.v, s.u, s.i_load, du_for_k, r_apply,
-                         cfg.plant.R_ohm * pi * pi - (pu + um) * pi, -P_l * cfg.v_ref_V / pv))
+                         R * pi * pi - (pu + um) * pi, -P_l * v_ref / pv))
             if rec is not None:  # streamed through the recorder process: a killed plant keeps its trace
                 rec.offer(t_meas, t, (k, t, s.i, s.v, s.u, s.i_load))
                 if du_for_k == du_for_k:  # NaN: no command answered this sample
-                    rec.offer(t_cmd, t, (k, t, du_for_k, sched.prev[1], False))
+                    rec.offer(t_cmd, t, (k, t, du_for_k, du_next, False))
                 rec.offer(t_plant, t, (t, pi, pv, pu, P_l))
-            plant.advance(r_apply, T, n_sub)
+            advance()
         cpu.stop()
         host.stop()
 
@@ -307,7 +298,7 @@ class PlantRig:
         trace = {f: cols[j].copy() for j, f in enumerate(PLANT_TRACE)}
         diverged = trace_divergence(trace["t"], trace["v"], cfg.v_ref_V, cfg.acceptance)
         metrics = compute_metrics(trace, cfg.v_ref_V, cfg.duration_s, diverged, 0, cfg.acceptance,
-                                  profile_events(self.load, self.plant.dist))
+                                  profile_events(self.rig.load, self.rig.dist))
         in_run = max(0, counters["samples"] - sched.d)  # samples whose command's period is within the run
         counters["missed"] = in_run - sum(self.arrived[:in_run])
         counters.update(sched.counts)
@@ -323,9 +314,7 @@ class PlantRig:
             res["latency_us"] = {"p50": lat[q // 2] / 1e3, "p99": lat[min(q - 1, int(q * 0.99))] / 1e3,
                                  "max": lat[-1] / 1e3, "n": q}
             # settled regulation: within +-2 % after 50 ms
-            late = trace["t"] >= 0.05
-            dev = np.abs(trace["v"][late] - cfg.v_ref_V) / cfg.v_ref_V
-            res["max_dev_after_50ms_pct"] = float(dev.max() * 100) if late.any() else None
+            res["max_dev_after_50ms_pct"] = max_dev_pct(trace["t"], trace["v"], 0.05, math.inf, cfg.v_ref_V)
         if rec is not None:
             rec.add_metadata("metrics", {"json": json.dumps(res)})
             rec.close()

@@ -11,15 +11,14 @@ applies, and ``advance(r)`` integrates one period.
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from schemas.network import EventConfig, NetworkScenario
 from service.core.types import Sample
 from service.plant.network import NetworkPlant
-from service.plant.rlc import CommandChannel, CommandSchedule, Sensor
-from service.sim import divergence_why, substeps
+from service.plant.rig import CommandPath, substeps
+from service.plant.rlc import CommandChannel, Sensor
+from service.sim import divergence_why
 
 
 class NetworkRigModel:
@@ -39,10 +38,13 @@ class NetworkRigModel:
         self.names = list(net.sources)
         ns = len(self.names)
         self.sensors = [Sensor(net.sensor, net.seed * 1000 + j) for j in range(ns)]
-        self.delays: list[deque] = [deque([(0.0, 0.0)] * self.d) for _ in range(ns)]
-        self.scheds = [CommandSchedule(self.d if realtime else 0) for _ in range(ns)]
-        # timing's command disturbances (lockstep and offline: a realtime stack has its own), per source its own draws
-        self.channels = [CommandChannel(tm, [net.seed, j]) for j in range(ns)]
+        # each source's commands: lockstep and offline through its d-sample delay line, timing's command disturbances
+        # (per source its own draws) and its schedule; realtime the schedule alone, d samples behind (a realtime
+        # stack has its own disturbances)
+        self.paths = [CommandPath(0, None, True, self.d) if realtime else
+                      CommandPath(self.d, CommandChannel(tm, [net.seed, j])) for j in range(ns)]
+        self.scheds = [p.sched for p in self.paths]
+        self.r = [0.0] * ns  # the rate each source's converter applies over the current period (V/s)
         if net.start == "steady":
             plant.start_steady([s.share for s in net.sources.values()], net.nominal_v_V)
         self.pending: list[EventConfig] = sorted(net.events, key=lambda e: e.t_s)
@@ -51,7 +53,6 @@ class NetworkRigModel:
         self.nodes = net.nodes()
         self.why = ""  # why diverged() said so
         self.bus_rng = np.random.default_rng([net.seed, 0xB05])  # the layer's bus measurements: their own noise
-        self.r = [0.0] * ns
         # both ends of every line: (line, node, line index, node index), found once (line_ends runs per sample)
         self._ends = [(name, node, j, plant.node_index[node]) for j, (name, ln) in enumerate(net.lines.items())
                       for node in (ln.a, ln.b)]
@@ -102,24 +103,18 @@ class NetworkRigModel:
     def command(self, j: int, k: int, du: float | None, du_next: float = 0.0) -> float:
         """Source j's answer to sample k (du/dt, planned du/dt V/s; None: none came) through its loop delay and
         timing's command disturbances: the rate its converter applies over period k (V/s)."""
-        q = self.delays[j]
-        if self.d:
-            q.append(None if du is None else (du, du_next))
-            got = q.popleft()
-        else:
-            got = None if du is None else (du, du_next)
-        self.r[j] = self.channels[j].deliver(self.scheds[j], k, self.plant.t, got)
-        return self.r[j]
+        self.r[j] = r = self.paths[j].command(k, self.plant.t, du, du_next)
+        return r
 
     def arrive(self, j: int, seq: int, du: float, du_next: float) -> None:
         """Realtime: source j's answer to sample seq came."""
-        self.scheds[j].arrive(seq, du, du_next)
+        self.paths[j].arrive(seq, du, du_next)
 
     def take(self, j: int, k: int) -> float:
         """Realtime: the rate source j's converter applies over period k (V/s): the answer to sample k - d, else
         its predecessor's plan, else a hold."""
-        self.r[j] = self.scheds[j].take(k)[0]
-        return self.r[j]
+        self.r[j] = r = self.paths[j].take(k)[0]
+        return r
 
     def line_ends(self) -> list[tuple[str, str, float]]:
         """(line, node, the power the line draws there W) for both ends of every line."""

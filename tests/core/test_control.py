@@ -259,8 +259,8 @@ def _skipping_loop(renumber: bool, d: int = 2, n: int = 600):
     renumber: give the core consecutive numbers instead of the plant's (what a tick-indexed history sees).
     Returns the largest |u_pred - u(t_{k+d})| and |i_pred - i(t_{k+d})| over the ticks."""
     from service.plant.profiles import Profile
+    from service.plant.rig import substeps
     from service.plant.rlc import RLCPlant, load_current
-    from service.sim import substeps
 
     scn = load_scenario(SCENARIOS / "paper-constant-load.toml",
                         ["timing.control_rate_hz=1000.0", "controller.K_per_s=1500.0", "timing.plant_step_s=5e-5",
@@ -314,8 +314,8 @@ def _late_burst_run(late_detect_V: float, observer_gain: float = 0.0) -> tuple[f
 
     from service.core import make_core
     from service.plant.profiles import Profile
+    from service.plant.rig import substeps
     from service.plant.rlc import RLCPlant, Sensor, load_current
-    from service.sim import substeps
 
     scn = load_scenario(Path(__file__).parents[2] / "clients" / "embedded" / "demo.toml",
                         ['controller.kind="fblc"', "timing.control_rate_hz=1000.0", "timing.plant_step_s=5e-5",
@@ -498,7 +498,7 @@ def test_the_metrics_say_when_v_deviated_most_and_how_long_it_was_outside_the_ba
     """One 3 % excursion of 10 ms at 0.30 s in an otherwise exact run: hold_max_dev_pct finds 3 %, and the new
     metrics put it at 0.30 s and 10 ms outside the band (a run that never settles and a single stall look alike
     in hold_max_dev_pct alone)."""
-    from service.sim import compute_metrics
+    from service.metrics import compute_metrics
 
     v_ref, dt = 80.0, 1e-4
     t = np.arange(0.0, 0.5, dt)
@@ -520,7 +520,7 @@ def test_the_band_is_judged_where_the_scenario_says_it_must_hold():
     of recovery after an event at 0.295 s (not after one at 0.25 s), or a band of +-4 %, or does not require the
     band; failed again with the band required from 0.35 s but the excursion moved to 0.40 s."""
     from schemas.scenario import AcceptanceConfig
-    from service.sim import compute_metrics
+    from service.metrics import compute_metrics
 
     v_ref, dt = 80.0, 1e-4
     t = np.arange(0.0, 0.5, dt)

@@ -18,7 +18,8 @@ from clients.netlive import LiveNetwork
 from clients.peers.netrig import read_rig_log
 from schemas.network import load_network
 from service.logio.reader import messages
-from service.network.netsim import acceptance_checks, run_network
+from service.metrics import acceptance_checks
+from service.network.netsim import run_network
 from tests.conftest import ROOT, SCENARIOS
 
 DEMO = ROOT / "clients" / "embedded" / "network-demo.toml"

@@ -379,7 +379,7 @@ def test_a_bus_no_source_reaches_is_a_blackout_not_a_divergence():
 def test_a_trace_without_the_controllers_reports_feasibility_violations_as_unknown():
     """A live rig's trace (no controllers: the daemons' monitors count excursions) reported 0 feasibility violations
     per source, a count it cannot know; now null (the offline run, which has them, still counts)."""
-    from service.network.netsim import network_metrics
+    from service.metrics import network_metrics
 
     net = load_network(SCENARIOS / "network" / "two-source.toml", ["timing.duration_s=0.05", "events=[]"])
     res = run_network(net)
