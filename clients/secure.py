@@ -42,6 +42,10 @@ from schemas.component import ZenohConfig
 from schemas.scenario import ScenarioError
 
 ROUTER_FILE = "router.json5"
+# a lockstep network across hosts: how long a message waits for room in a full send queue before it is dropped (us;
+# Zenoh's default 1 000): at 32 daemons a sample's burst overfilled the routers' queues (decisions/0044)
+LOCKSTEP_WAIT_BEFORE_DROP_US = 200_000
+WAIT_BEFORE_DROP_MAX_US = 1_000_000
 CREDENTIALS_FILE = "credentials.txt"
 
 
@@ -254,7 +258,8 @@ def write_network_profile(out_dir: str | Path, net, prefix: str = "energyctl", r
                           monitors: list[str] | None = None, listen: list[str] | None = None,
                           hosts: dict[str, list[str]] | None = None, hub: str | None = None,
                           hub_endpoints: list[str] | None = None, uplink_interface: str | None = None,
-                          lease_ms: int | None = 1000, keep_alive: int | None = 4) -> dict[str, Path]:
+                          lease_ms: int | None = 1000, keep_alive: int | None = 4,
+                          wait_before_drop_us: int | None = None) -> dict[str, Path]:
     """The secure profile of a live network (``net``: its NetworkScenario): one identity per source daemon (its
     source's name), the rig, the coordinator, the operators and monitors.
 
@@ -271,7 +276,10 @@ def write_network_profile(out_dir: str | Path, net, prefix: str = "energyctl", r
     Also ``client.json5``, for every process's ``--zenoh-config``: the reconnection timing, and energyctl's
     send-queue size and shared-memory setting (a config file replaces energyctl's defaults for them).
     ``lease_ms``/``keep_alive`` (None: Zenoh's 10 s / 4), the routers': a router link silent for a lease is closed,
-    so a cut between hosts is seen within it (see link_timing). Existing passwords are kept."""
+    so a cut between hosts is seen within it (see link_timing). ``wait_before_drop_us`` (None: Zenoh's 1000 us): how
+    long a message under drop congestion control (every sample and command, service.daemon.bus.publisher) waits
+    for room in a full send queue before it is dropped, in every router and process (decisions/0044). Existing
+    passwords are kept."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     operators = operators if operators is not None else ["operator"]
@@ -316,6 +324,9 @@ def write_network_profile(out_dir: str | Path, net, prefix: str = "energyctl", r
 
     # a router forwards every sample and command: its send queue as deep as a process's (service.daemon.bus)
     queue = {"transport": {"link": {"tx": {"queue": {"size": {"data": TX_QUEUE_BATCHES}}}}}}
+    if wait_before_drop_us is not None:
+        queue["transport"]["link"]["tx"]["queue"]["congestion_control"] = {
+            "drop": {"wait_before_drop": int(wait_before_drop_us)}}
     head = ("// energyctl secure profile of network {net} (energyctl secure-profile --network){extra}; Zenoh JSON5, "
             "also for zenohd -c\n// (zenohd reads dictionary_file from its working directory, energyctl router from "
             "here)\n")

@@ -145,6 +145,14 @@ def _network(args: argparse.Namespace) -> dict:
                          progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
 
 
+def _network_scale(args: argparse.Namespace) -> dict:
+    from clients.bench.network_scale import LIVE_SIZES, OFFLINE_SIZES, bench_network_scale
+
+    live = () if args.offline_only else LIVE_SIZES
+    return bench_network_scale(OFFLINE_SIZES, live, seconds=args.seconds or 0.1, repeat=args.repeat,
+                               progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+
+
 def _network_live(args: argparse.Namespace) -> dict:
     from clients.bench.network_live import bench_network_live
 
@@ -213,6 +221,11 @@ BENCHES: dict[str, Bench] = {
                       "plant's measurement -> command latency and status queries, with it reading and stopped"),
     "network": Bench(_network, "a network's offline cost per source per tick at 2, 4, 8 and 16 sources (radial "
                                "feeders; --seconds simulated each, default 0.2)"),
+    "network-scale": Bench(_network_scale, "radial networks offline at 4-64 sources (cost per source per tick) and "
+                                           "live in lockstep at 4-32 source daemons on 4 namespace hosts through the "
+                                           "secure profile's routers (root): wall time per simulated second, CPU per "
+                                           "daemon per sample from /proc, identity with sim per run (--seconds "
+                                           "simulated each, default 0.1; --offline-only)"),
     "network-live": Bench(_network_live, "the live network on loopback (rig, coordinator, a daemon per source): time "
                                          "until every bus is back within +-2 % after a plug-in, a daemon killed "
                                          "with SIGKILL and the coordinator lost and restarted (--realtime: at 1 kHz, "
@@ -293,6 +306,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help=f"recovery: wall-clock pacing with demo --realtime's settings ({DEMO_REALTIME_HZ / 1e3:g} kHz, "
                         f"{DEMO_REALTIME_DELAY}-sample schedule, {' '.join(DEMO_REALTIME_SETS)}) instead of lockstep")
     b.add_argument("--repeat", type=int, default=3, help="sim, core, network: passes (default %(default)s)")
+    b.add_argument("--offline-only", action="store_true", help="network-scale: the offline sizes only")
     b.add_argument("--json", action="store_true", help="print one JSON object instead of key: value lines")
     b.set_defaults(func=run)
     return b

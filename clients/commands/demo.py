@@ -8,6 +8,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from clients.commands.common import DEMO_SCENARIO, EMBEDDED, load
+from clients.nethosts import MAX_HOSTS, MAX_SOURCES, RADIAL_DURATION_S
 from clients.options import add_cpus, add_logs, add_nice, add_scenario_set
 from clients.table import metrics_table
 from schemas.scenario import ScenarioError
@@ -76,6 +77,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "scenarios/network/realtime.toml's settings: 1 kHz, 4 ms of loop delay, K = 400 /s on the "
                         "observer's estimate, no planned commands, open and low-power fallback sources hold u, 50 ms "
                         "ramps in and back")
+    d.add_argument("--hosts", type=int, metavar="N",
+                   help="with --network: across N hosts (Linux network namespaces made and removed here; root), one "
+                        "Zenoh router per host under the secure profile, linked hub-and-spoke: the rig and the "
+                        "coordinator on the hub, the source daemons in blocks on the others; lockstep, checked "
+                        "against energyctl sim of the same scenario (every v, i, u and command); exit 0 if equal, 1 "
+                        "if not or on a failure, 130 if interrupted (docs/across-hosts.md)")
+    d.add_argument("--sources", type=int, metavar="N",
+                   help="with --network --hosts: the radial network of N sources (clients/bench/network.py radial, "
+                        f"{RADIAL_DURATION_S:g} s at 10 kHz unless --duration) instead of a scenario file")
     add_nice(d)
     add_cpus(d)
     add_scenario_set(d)
@@ -89,6 +99,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.lockstep and args.realtime:
         raise ScenarioError("demo: --lockstep or --realtime, not both")
+    if args.network and (args.hosts is not None or args.sources is not None):
+        return run_hosted_demo(args)
+    if args.hosts is not None or args.sources is not None:
+        raise ScenarioError("demo: --hosts and --sources go with --network")
     if args.network:
         return run_network_demo(args)
     # lockstep by default: it regulates in every run and equals energyctl sim; realtime missed in about one 2 s run
@@ -231,6 +245,85 @@ def run_network_demo(args: argparse.Namespace) -> int:
     what = "every check holds" if not args.realtime else "every check the scenario passes offline holds live"
     print(what if ok else f"NOT {what}")
     return 0 if ok else 1
+
+
+def run_hosted_demo(args: argparse.Namespace) -> int:
+    """energyctl demo --network --hosts N [--sources N]: the network across N namespace hosts through the secure
+    profile's routers, lockstep, checked against energyctl sim; progress on stderr; 0 equal, 1 not or a failure,
+    130 interrupted. Every namespace and process is removed, also on failure or an interrupt."""
+    import json
+    import signal
+    import sys
+
+    from clients.nethosts import run_hosted, write_radial
+    from clients.netns import unavailable_reason
+    from clients.secure import LOCKSTEP_WAIT_BEFORE_DROP_US
+    from schemas.network import load_network
+
+    hosts = args.hosts if args.hosts is not None else 4
+    if not 1 <= hosts <= MAX_HOSTS:
+        raise ScenarioError(f"demo --hosts: 1 to {MAX_HOSTS}, got {hosts}")
+    if args.realtime or args.offline or args.secure:
+        raise ScenarioError("demo --network --hosts: lockstep through the secure profile's routers (no --realtime, "
+                            "--offline or --secure: it is always secure)")
+    if args.sources is not None and not 1 <= args.sources <= MAX_SOURCES:
+        raise ScenarioError(f"demo --sources: 1 to {MAX_SOURCES}, got {args.sources}")
+    reason = unavailable_reason()
+    if reason is not None:
+        raise ScenarioError(f"demo --network --hosts: {reason}")
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    work = Path(args.logs) / f"network-hosts-{stamp}"
+    sets = list(args.set or [])
+    if args.sources is not None:
+        if args.network != str(NETWORK_DEMO_SCENARIO):
+            raise ScenarioError("demo --sources N builds the radial network: give no scenario file to --network")
+        scenario = write_radial(work / f"radial-{args.sources}.toml", args.sources,
+                                args.duration if args.duration else RADIAL_DURATION_S)
+    else:
+        scenario = Path(args.network)
+        if args.duration:
+            sets.append(f"timing.duration_s={args.duration}")
+    net = load_network(scenario, sets)
+    print(f"energyctl {__version__} demo --network --hosts {hosts} (lockstep, secure profile, "
+          f"{net.timing.control_rate_hz:g} Hz, {net.timing.duration_s:g} s): {net.description}", flush=True)
+
+    def progress(m: str) -> None:
+        print(f"  {m}", file=sys.stderr, flush=True)
+
+    def interrupted(signum, frame):  # noqa: ARG001 - SIGTERM as SIGINT: the with-blocks clean up on the way out
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, interrupted)
+    try:
+        res = run_hosted(scenario, work, hosts, sets, progress=progress,
+                         wait_before_drop_us=LOCKSTEP_WAIT_BEFORE_DROP_US)
+    except KeyboardInterrupt:
+        print("interrupted: every process and namespace removed", file=sys.stderr, flush=True)
+        return 130
+    except RuntimeError as e:
+        print(f"FAILED: {e}", flush=True)
+        print(f"logs: {work}", flush=True)
+        return 1
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    (work / "result.json").write_text(json.dumps(res, indent=1, default=str))
+    rig, ident = res["rig"], res.get("identity", {})
+    print(f"{res['sources']} source daemons, the coordinator and the rig on {res['hosts']} hosts: every process up "
+          f"after {res['startup_s']:.1f} s ({res['rss_mb']} MB resident); {rig['samples']} samples in "
+          f"{rig['wall_s']:.1f} s ({res['wall_per_sim_s']:.1f} s per simulated second); lockstep timeouts "
+          f"{rig['counters']['timeouts']}")
+    if res["cpu_per_daemon_per_sample_us"] is not None:
+        print(f"CPU per daemon per sample {res['cpu_per_daemon_per_sample_us']:.0f} us; all processes "
+              f"{res['cpu_total_per_sample_us']:.0f} us per sample")
+    if ident.get("equal"):
+        print(f"lockstep across the hosts equals energyctl sim of the same scenario: every v, i, u and command of "
+              f"{res['sources']} sources and every bus v, {ident['samples']} samples, bit for bit")
+    if res["ended_by_shutdown_grace"]:
+        print(f"stopped, but ended by the 5 s shutdown grace (its Zenoh session's close outlasted it): "
+              f"{', '.join(res['ended_by_shutdown_grace'])}")
+    print(f"{res['wall_s']:.1f} s wall; logs and result.json in {work}")
+    print("ok" if res["ok"] else f"NOT ok: {res['why']}")
+    return 0 if res["ok"] else 1
 
 
 def check_key(c: dict) -> str:

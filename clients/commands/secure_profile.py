@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from clients.secure import LOCKSTEP_WAIT_BEFORE_DROP_US, WAIT_BEFORE_DROP_MAX_US
 from schemas.scenario import ScenarioError
 
 
@@ -57,6 +58,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                           "half of it (default: %(default)s; 0: Zenoh's defaults, a 10 s lease)")
     net.add_argument("--keep-alive", type=int, default=4,
                      help="keep-alive messages per lease on a quiet link (default: %(default)s)")
+    net.add_argument("--wait-before-drop-us", type=int, metavar="US",
+                     help="how long a sample or command waits for room in a full send queue before it is dropped, "
+                          "in every router and process, us (0 to 1000000; default: Zenoh's 1000). A lockstep network "
+                          "of many daemons across hosts needs more: demo --network --hosts uses "
+                          f"{LOCKSTEP_WAIT_BEFORE_DROP_US} (docs/decisions/0044); realtime, a longer wait is a later "
+                          "command instead of a missing one")
     sp.set_defaults(func=run)
     return sp
 
@@ -101,6 +108,8 @@ def run_network(args: argparse.Namespace) -> int:
                             "the routers' network private)")
     if args.lease_ms < 0 or args.keep_alive < 1:
         raise ScenarioError("--lease-ms: 0 or more; --keep-alive: 1 or more")
+    if args.wait_before_drop_us is not None and not 0 <= args.wait_before_drop_us <= WAIT_BEFORE_DROP_MAX_US:
+        raise ScenarioError(f"--wait-before-drop-us: 0 to {WAIT_BEFORE_DROP_MAX_US}, got {args.wait_before_drop_us}")
     hosts = hub = hub_endpoints = None
     if args.host or args.hub:
         if not (args.host and args.hub):
@@ -119,7 +128,8 @@ def run_network(args: argparse.Namespace) -> int:
     lease = args.lease_ms or None
     paths = write_network_profile(args.out, net, args.prefix, args.rig, args.coordinator, args.operator,
                                   args.monitor, args.listen, hosts, hub, hub_endpoints, args.uplink_interface,
-                                  lease_ms=lease, keep_alive=args.keep_alive if lease else None)
+                                  lease_ms=lease, keep_alive=args.keep_alive if lease else None,
+                                  wait_before_drop_us=args.wait_before_drop_us)
     routers = [p for k, p in paths.items() if k == "router" or k.startswith("router-")]
     users = [u for u in paths if u not in ("router", "credentials", "client") and not u.startswith("router-")]
     print(f"wrote {', '.join(str(p) for p in routers)} (access control, default deny) and {paths['credentials']}")

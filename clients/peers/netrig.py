@@ -23,6 +23,8 @@ its log, and ``energyctl plant`` exits 1. A run that ends with the network diver
 
 At the end it writes its log (``out``) in the layout of ``energyctl sim NETWORK --out`` for the plant: each source's,
 bus's and line's true state under PREFIX/NETWORK/ELEMENT/plant, the breaker events under PREFIX/NETWORK/layer/events,
+in lockstep each source's answer to each sample under PREFIX/NETWORK/SOURCE/cmd (as ``energyctl sim --out`` logs
+its controllers' answers: a lockstep run is checked against the offline one command for command),
 the scenario and the metrics as metadata; ``energyctl report`` draws it and ``network_metrics`` recomputes from it.
 """
 
@@ -49,6 +51,7 @@ from service.metrics import acceptance_checks, network_metrics
 from service.network.netrig import NetworkRigModel
 from service.network.netsim import Event, NetworkResult
 
+_NO_ANSWER = (float("nan"), float("nan"))  # a lockstep sample a source did not answer, in the command log
 CUT_WINDOW_S = 2.0  # sources whose tokens went this long before the rig found itself cut off went with the cut
 
 
@@ -86,6 +89,9 @@ class NetworkRig:
         ns, nb, nl = len(self.names), len(net.buses), len(net.lines)
         self._rows = array("d")  # per tick: t, per source (i, v, u, i_out, P, du_dt), per bus v, per line i
         self._width = 1 + 6 * ns + nb + nl
+        # lockstep: per tick, per source the answer to that sample (du/dt, planned du/dt V/s; NaN: none came), as
+        # offline's cmd_du/cmd_du_next, logged under SOURCE/cmd so a run can be checked command for command
+        self._cmds = array("d")
 
     # ---------------------------------------------------------------- the run
     def run(self) -> dict:
@@ -141,6 +147,8 @@ class NetworkRig:
         now_ns = time.monotonic_ns
         rows, stop = self._rows, self.stop
         z_every = max(1, round(self.net.timing.control_rate_hz / cfg.interaction_rate_hz))
+        # every process up and subscribed: the run starts (a line to wait on: clients.nethosts measures from here)
+        print(f"energyctl plant: sampling, {N} samples ({cfg.pacing})", file=self.log, flush=True)
         self.cpu = ProcessCpu().start()
         t_wall0 = time.perf_counter()
         next_ns = now_ns() + period_ns
@@ -183,6 +191,8 @@ class NetworkRig:
                 answers = self._await(k)
                 r = [model.command(j, k, *(answers[j] if answers[j] is not None else (None, 0.0)))
                      for j in range(ns)]
+                for a in answers:
+                    self._cmds.extend(a if a is not None else _NO_ANSWER)
             else:
                 if k == 0:
                     # arm: the converters are enabled by the sources' first answers, and the sampling clock starts
@@ -421,6 +431,11 @@ class NetworkRig:
         buses = {b: a[:, o + q].copy() for q, b in enumerate(net.buses)}
         o += len(net.buses)
         lines = {ln: a[:, o + q].copy() for q, ln in enumerate(net.lines)}
+        if self.lockstep:  # the answers, as offline's cmd_du / cmd_du_next
+            c = np.frombuffer(self._cmds, dtype=np.float64).reshape(-1, 2 * ns)[:len(t)] if len(self._cmds) else \
+                np.zeros((0, 2 * ns))
+            for j, name in enumerate(self.names):
+                sources[name]["cmd_du"], sources[name]["cmd_du_next"] = c[:, 2 * j].copy(), c[:, 2 * j + 1].copy()
         return NetworkResult(net, t, sources, buses, lines, list(self.events), {})
 
     def result(self) -> dict:
@@ -483,6 +498,10 @@ def write_rig_log(path: str, res: NetworkResult, prefix: str, summary: dict) -> 
     f.metadata("rig", {"json": json.dumps({k: v for k, v in summary.items() if k != "metrics"})})
     for el in (*res.sources, *res.buses, *res.lines):
         f.channel(f"{base}/{el}/plant", "energyctl.Plant")
+    cmds = {n for n, row in res.sources.items() if "cmd_du" in row}  # lockstep: each source's answers
+    for n in res.sources:  # in scenario order: the same channel ids every run
+        if n in cmds:
+            f.channel(f"{base}/{n}/cmd", "energyctl.Command")
     f.channel(f"{base}/layer/events", "energyctl.Event")
     t = res.t.tolist()
     src = {n: {k: v.tolist() for k, v in row.items()} for n, row in res.sources.items()}
@@ -491,6 +510,9 @@ def write_rig_log(path: str, res: NetworkResult, prefix: str, summary: dict) -> 
     for k, tk in enumerate(t):
         for n, c in src.items():
             f.add(f"{base}/{n}/plant", tk, {"t": tk, "i": c["i"][k], "v": c["v"][k], "u": c["u"][k], "P_l": c["P"][k]})
+            if n in cmds and c["cmd_du"][k] == c["cmd_du"][k]:  # NaN: no answer came, nothing logged
+                f.add(f"{base}/{n}/cmd", tk, {"seq": k, "t": tk, "du_dt": c["cmd_du"][k],
+                                              "du_dt_next": c["cmd_du_next"][k], "limited": False})
         for b, v in buses.items():
             f.add(f"{base}/{b}/plant", tk, {"t": tk, "i": 0.0, "v": v[k], "u": 0.0, "P_l": 0.0})
         for ln, i in lines.items():
@@ -517,6 +539,14 @@ def read_rig_log(path: str) -> NetworkResult:
     t = el[next(iter(net.sources))]["plant"]["t"]
     sources = {s: {"i": el[s]["plant"]["i"], "v": el[s]["plant"]["v"], "u": el[s]["plant"]["u"],
                    "P": el[s]["plant"]["P_l"]} for s in net.sources}
+    for s in net.sources:  # a lockstep rig's log: each source's answers by sample (NaN: none came)
+        cmd = el[s].get("cmd")
+        if cmd is not None or any("cmd" in el[o] for o in net.sources):
+            du, du_next = np.full(len(t), np.nan), np.full(len(t), np.nan)
+            if cmd is not None:
+                seq = cmd["seq"].astype(np.int64)
+                du[seq], du_next[seq] = cmd["du_dt"], cmd["du_dt_next"]
+            sources[s]["cmd_du"], sources[s]["cmd_du_next"] = du, du_next
     buses = {b: el[b]["plant"]["v"] for b in net.buses}
     lines = {ln: el[ln]["plant"]["i"] for ln in net.lines}
     events = [Event(e["t"], e["kind"], json.loads(e["detail"])["target"], json.loads(e["detail"])["accepted"],

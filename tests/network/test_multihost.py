@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -35,6 +34,7 @@ import numpy as np
 import pytest
 from conftest import SCENARIOS
 
+from clients.nethosts import NICE, HostedNetwork
 from clients.netns import Hosts, unavailable_reason
 
 SCENARIO = SCENARIOS / "network" / "realtime.toml"
@@ -47,8 +47,6 @@ DURATION_S = 15.0 if REALTIME else 12.0
 SET = ["--set", f"timing.duration_s={DURATION_S:g}", "--set", "events=[]"]
 RT_FLAG = ["--realtime"] if REALTIME else []  # the daemons and the coordinator: answer the newest sample only
 SOURCES = ["S1", "S2"]  # S3 stays disconnected, no daemon
-LOCAL = "tcp/127.0.0.1:7447"  # every host's router, for its own processes (each namespace has its own loopback)
-HUB_PORT = 7448  # the hub's router, for the other routers
 HOSTS = ["rig", "coord", "h1", "h2"]  # the rig's host is the hub
 PLACE = {"rig": ["rig"], "coord": ["coordinator", "S3"], "h1": ["S1"], "h2": ["S2"]}
 HOST_OF = {ident: h for h, ids in PLACE.items() for ident in ids}
@@ -57,11 +55,10 @@ if os.environ.get("MULTIHOST_ZENOH_LOG"):
     ENERGYCTL = [sys.executable, "-c", "import sys, zenoh; zenoh.init_log_from_env_or(sys.argv.pop(1)); "
                  "from clients.cli import main; sys.exit(main(sys.argv[1:]))", os.environ["MULTIHOST_ZENOH_LOG"]]
 # Two CPUs carry every host here. The realtime path (the routers, the rig, the source daemons) runs above the rest
-# (the coordinator, the probes, pytest): SCHED_FIFO where allowed, else nice -10; with all at one priority, stalls of
-# 5-20 ms in the commands were common, after which the network can diverge. For the same reason only the rig records
-# (in memory until the end): a recorder's writer process per daemon and for the coordinator cost the same CPU.
-RT_PRIORITY = 10
-NICE = -10
+# (the coordinator, the probes, pytest): SCHED_FIFO where allowed, else nice -10 (clients.nethosts); with all at one
+# priority, stalls of 5-20 ms in the commands were common, after which the network can diverge. For the same reason
+# only the rig records (in memory until the end): a recorder's writer process per daemon and for the coordinator cost
+# the same CPU.
 
 # A query client inside a host: one session, one JSON request per stdin line, one JSON answer per line.
 PROBE = r"""
@@ -94,11 +91,6 @@ def wait_for(what: str, cond, timeout_s: float, every_s: float = 0.1, seen=None)
         time.sleep(every_s)
 
 
-def realtime_allowed() -> bool:
-    return shutil.which("chrt") is not None and subprocess.run(["chrt", "-f", str(RT_PRIORITY), "true"],
-                                                              capture_output=True).returncode == 0
-
-
 class Probe:
     """Queries from inside a host as the operator (clients.query.ask on one long-lived session)."""
 
@@ -120,89 +112,17 @@ class Probe:
         return st if st is not None and cond(st) else None
 
 
-class Network:
-    """The hosts, the secure profile, and the processes on the hosts."""
-
-    def __init__(self, hosts: Hosts, work: Path):
-        self.hosts, self.work = hosts, work
-        self.profile = work / "secure"
-        self.routers: dict[str, subprocess.Popen] = {}
-        self.procs: dict[str, subprocess.Popen] = {}
-        self.hub_endpoint = f"tcp/{hosts.address('rig')}:{HUB_PORT}"
-        self.rt = realtime_allowed()
-
-    def write_profile(self) -> None:
-        argv = [*ENERGYCTL, "secure-profile", "--out", str(self.profile), "--network", str(SCENARIO),
-                "--hub", f"rig={self.hub_endpoint}", "--uplink-interface", "eth0", "--listen", LOCAL,
-                "--lease-ms", "1000", "--keep-alive", "4"]
-        for h, ids in PLACE.items():
-            argv += ["--host", f"{h}={','.join(ids)}"]
-        r = subprocess.run(argv, capture_output=True, text=True)
-        assert r.returncode == 0, r.stderr
-
-    def zenoh_args(self, user: str) -> list[str]:
-        return ["--mode", "client", "--connect", LOCAL, "--user", user, "--password-file",
-                str(self.profile / f"{user}.password"), "--zenoh-config", str(self.profile / "client.json5")]
-
-    def zenoh_dict(self, user: str) -> dict:
-        return {"mode": "client", "connect": [LOCAL], "user": user,
-                "password_file": str(self.profile / f"{user}.password"),
-                "config_file": str(self.profile / "client.json5")}
-
-    def hot(self) -> list[str]:
-        return ["chrt", "-f", str(RT_PRIORITY)] if self.rt else ["nice", "-n", str(NICE)]
-
-    def start_router(self, host: str) -> None:
-        """Start a host's router, wait until it listens, then raise it to the realtime path's priority (raised from
-        the start, its start-up, mostly imports, took the CPUs from the running network for a second)."""
-        log = self.work / f"router-{host}.log"
-        n = log.read_text().count("listening") if log.exists() else 0
-        with open(log, "a") as f:
-            p = self.routers[host] = self.hosts.popen(
-                host, [*ENERGYCTL, "router", "--config", str(self.profile / f"router-{host}.json5")],
-                stdout=f, stderr=f)
-
-        def ready() -> bool:
-            if p.poll() is not None:
-                pytest.fail(f"the router of {host} exited ({p.returncode}): {log.read_text()[-2000:]}")
-            return log.read_text().count("listening") > n
-
-        wait_for(f"the router of {host} to listen", ready, 20.0, every_s=0.05)
-        for tid in map(int, os.listdir(f"/proc/{p.pid}/task")):  # per thread: Zenoh's exist by now
-            try:
-                if self.rt:
-                    os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
-                else:
-                    os.setpriority(os.PRIO_PROCESS, tid, NICE)
-            except OSError:  # a thread that ended, or no CAP_SYS_NICE: it runs as it is
-                pass
-
-    def stop_router(self, host: str) -> None:
-        p = self.routers.pop(host)
-        p.send_signal(signal.SIGTERM)
-        p.wait(10.0)
-
-    def start(self, name: str, host: str, argv: list[str], hot: bool = False) -> subprocess.Popen:
-        with open(self.work / f"{name}.out", "w") as out, open(self.work / f"{name}.log", "w") as err:
-            p = self.hosts.popen(host, [*(self.hot() if hot else []), *ENERGYCTL, *argv], stdout=out, stderr=err)
-        self.procs[name] = p
-        return p
-
-    def log(self, name: str) -> str:
-        return (self.work / f"{name}.log").read_text()[-3000:]
-
-
 @pytest.fixture
 def network(tmp_path):
     reason = unavailable_reason()
     if reason is not None:
         pytest.skip(f"multi-host test: {reason}")
-    hosts = Hosts(HOSTS)
+    net = HostedNetwork(SCENARIO, tmp_path, {h: PLACE[h] for h in HOSTS}, hub="rig", energyctl=ENERGYCTL)
     try:
-        hosts.create()
-        yield Network(hosts, tmp_path)
+        net.create()
+        yield net
     finally:
-        hosts.close()  # every process started in a host, then every namespace (links and addresses with them)
+        net.close()  # every process started in a host, then every namespace (links and addresses with them)
 
 
 def last_json(path: Path) -> dict:
