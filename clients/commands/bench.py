@@ -257,13 +257,16 @@ BENCHES: dict[str, Bench] = {
 }
 
 
+_NAME_W = max(map(len, BENCHES)) + 2  # the listing's name column: the longest bench name and two spaces
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
     listing = ", ".join(f"'{name}' ({b.what})" for name, b in BENCHES.items())
     b = subparsers.add_parser(
         "bench", help="benchmarks: " + listing.replace("%", "%%"),
         description="Runs one benchmark and prints its result, one key: value line per field (--json: one JSON "
                     "object). The options below say which benches they apply to.\n\n"
-                    + "\n".join(f"  {name:<12}{b.what}" for name, b in BENCHES.items()))
+                    + "\n".join(f"  {name:<{_NAME_W}}{b.what}" for name, b in BENCHES.items()))
     b.add_argument("what", choices=list(BENCHES), help="the bench to run (listed above)")
     b.add_argument("--rates", metavar="HZ,HZ,...",
                    help="realtime: control rates to try (default 1000,2000,5000,10000), with "
