@@ -50,7 +50,7 @@ from service.core.feasibility import incoming_range
 from service.daemon.bus import answer, close_session, key, open_session, publisher, queued, request, serve_queries
 from service.daemon.failure import Failure, guarded
 from service.network.layer import InterconnectionLayer, judge_announced, offer_staleness
-from service.plant.network import NetworkPlant
+from service.plant.network import LoadForecast
 
 MAX_REQUEST_BYTES = 64 * 1024  # a connect request larger than this is refused unread
 I_MAX_A = 10_000.0  # a grid sample's current beyond this (A) is refused, named
@@ -69,7 +69,7 @@ class Coordinator:
             raise ValueError("links: delay, loss and silence of the interaction messages are an offline model; live, "
                              "the network is the link (remove the links table)")
         self.cfg, self.net, self.impl = cfg, net, impl
-        self.layer = InterconnectionLayer(net, NetworkPlant(net, impl))  # the plant only for its loads' profiles
+        self.layer = InterconnectionLayer(net, LoadForecast(net))
         self.names = list(net.sources)
         self.ns = len(self.names)
         self.d = net.timing.delay_samples

@@ -29,6 +29,7 @@ from schemas.scenario import ControllerConfig
 from service.core import effective_gain
 from service.core.feasibility import incoming_range, load_box, tau_prime
 from service.forecast import OutgoingForecast, forecast_outgoing, verdict
+from service.plant.network import LoadForecast
 
 RATE_TAU_S = 1e-3  # the filter on P^{r,in}'s rate, which a late message is carried forward with (s)
 FORECAST_MARGIN = 0.05  # the layer's load box is widened by this fraction for the feasibility checks
@@ -106,10 +107,10 @@ class Sharing:
 
 
 class InterconnectionLayer:
-    """The layer's state over a run (see the module docstring). ``loads``: the network plant, read only for its
-    loads' profiles (``window_box``)."""
+    """The layer's state over a run (see the module docstring). ``loads``: the loads' forecast
+    (service.plant.network.LoadForecast: their configs and profiles, for ``window_box``), not the plant."""
 
-    def __init__(self, net: NetworkScenario, loads):
+    def __init__(self, net: NetworkScenario, loads: LoadForecast):
         self.net, self.cfg, self.loads = net, net.layer, loads
         self.names = list(net.sources)
         ns = self.ns = len(self.names)
@@ -266,31 +267,32 @@ def link_of(net: NetworkScenario, source: str) -> LinkConfig:
     return base if own is None else base.model_copy(update={k: getattr(own, k) for k in own.model_fields_set})
 
 
-def window_box(plant, net: NetworkScenario, k: int, loss_frac: float = 0.0) -> tuple[float, float, float, float]:
+def window_box(loads: LoadForecast, net: NetworkScenario, k: int,
+               loss_frac: float = 0.0) -> tuple[float, float, float, float]:
     """What the sources deliver over window k (W, W/s): the loads' box, resistive loads at nominal from their
     switching-in time, times 1 + loss_frac (the lines' losses as the layer last measured them), widened by
-    FORECAST_MARGIN. plant: the network plant (its loads and their profiles)."""
+    FORECAST_MARGIN. loads: the loads' forecast (their configs and profiles)."""
     w = net.layer.window_s
     t0, t1 = k * w, min((k + 1) * w, net.timing.duration_s)
     lo = hi = dlo = dhi = 0.0
-    for j, ld in enumerate(plant.load_list):
+    for j, ld in enumerate(loads.load_list):
         if ld.type == "resistive":
             p = net.load_scale * net.nominal_v_V ** 2 / ld.R_ohm
             on_lo = 0.0 if ld.active_from_s > t0 else p  # switched in during the window: either
             on_hi = p if ld.active_from_s < t1 else 0.0
             lo, hi = lo + on_lo, hi + on_hi
         else:
-            a, b, c, e = plant.profiles[j].range_over(t0, max(t1, t0 + 1e-9))
+            a, b, c, e = loads.profiles[j].range_over(t0, max(t1, t0 + 1e-9))
             lo, hi, dlo, dhi = lo + a, hi + b, dlo + c, dhi + e
     g = 1.0 + loss_frac
     return load_box(g * lo, g * hi, g * dlo, g * dhi, FORECAST_MARGIN)
 
 
-def incoming_ranges(plant, net: NetworkScenario, taus: list[float], k: int, shares: list[float],
+def incoming_ranges(loads: LoadForecast, net: NetworkScenario, taus: list[float], k: int, shares: list[float],
                     loss_frac: float = 0.0) -> list[tuple[float, float, float, float]]:
     """Z^{r,in}[k] of every source (P lo, P hi W, Qdot lo, Qdot hi W/s): its share of what the sources deliver over
     window k (window_box), through the paper's incoming range with its tau' (taus)."""
-    box = window_box(plant, net, k, loss_frac)
+    box = window_box(loads, net, k, loss_frac)
     total = sum(shares) or 1.0
     return [incoming_range(*(shares[j] / total * x for x in box), taus[j]) for j in range(len(shares))]
 

@@ -12,7 +12,7 @@ from schemas.network import NetworkScenario
 from schemas.scenario import ControllerConfig
 from service.logio.reader import LogError, messages, scan
 from service.network.layer import STALE_OFFER, InterconnectionLayer, judge_announced, offer_staleness
-from service.plant.network import NetworkPlant
+from service.plant.network import LoadForecast
 
 
 def is_coordinator_log(path: str | Path) -> bool:
@@ -65,8 +65,8 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
     ticks = messages(path, f"{base}/layer/tick")
     per = {n: {d["seq"]: d for d in messages(path, f"{base}/layer/{n}")} for n in names}
     events = messages(path, f"{base}/events")
-    plant = NetworkPlant(net, impl)
-    layer = InterconnectionLayer(net, plant)
+    loads = LoadForecast(net)
+    layer = InterconnectionLayer(net, loads)
     for e in events:
         if e["kind"] == "resume":
             for n, v in json.loads(e["detail"])["v_ref_V"].items():
@@ -86,7 +86,7 @@ def replay_coordinator(path: str | Path, impl: str = "auto") -> dict:
         if prev is not None and k != prev + 1:
             out["gaps"] += 1
             if k == 0:  # the rig restarted: the coordinator started a new layer
-                layer = hs.layer = InterconnectionLayer(net, plant)
+                layer = hs.layer = InterconnectionLayer(net, loads)
         prev = k
         # plug-in verdicts answered before this sample (after the previous one), with the layer's state then
         while vi < len(verdict_seqs) and verdict_seqs[vi] <= k:

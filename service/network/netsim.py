@@ -37,6 +37,7 @@ from service.core.source import ACTIVE, IDLE, SourceController
 from service.metrics import network_metrics
 from service.network.layer import InterconnectionLayer, Sharing, link_of
 from service.network.netrig import NetworkRigModel
+from service.plant.network import LoadForecast
 from service.sim import check_trace_size
 
 STALE_S = 0.01  # a P^{r,in} older than this (s) is stale: the source falls back to its own terminal
@@ -82,7 +83,7 @@ def run_network(net: NetworkScenario, impl: str = "auto", stop_on_divergence: bo
                      1 + len(net.sources) * len(SOURCE_SIGNALS) + len(net.buses) + len(net.lines), net.name)
     rig = NetworkRigModel(net, impl)  # the plant side, as the network rig runs it
     plant, T, N, d = rig.plant, rig.T, rig.N, rig.d
-    layer = InterconnectionLayer(net, plant)  # the layer, as the coordinator runs it
+    layer = InterconnectionLayer(net, LoadForecast(net))  # the layer, as the coordinator runs it
     names = list(net.sources)
     ns = len(names)
     cfgs = list(net.sources.values())

@@ -131,6 +131,24 @@ def integrator(impl: str = "auto"):
     return pick_twin(impl, steps, "network_steps", "network integrator")
 
 
+def load_profiles(net: NetworkScenario) -> list[SwitchedProfile | None]:
+    """Each load's profile in the scenario's order: a constant-power load's switched, scaled profile (W), None for
+    a resistive one."""
+    return [SwitchedProfile(Profile(ld, net.base_dir), ld.active_from_s, net.load_scale) if ld.type == "cpl" else None
+            for ld in net.loads.values()]
+
+
+class LoadForecast:
+    """What the interconnection layer knows of the loads ahead of time, from the scenario alone (not the plant's
+    state): each load's config (``load_list``) and, for a constant-power one, its profile (``profiles``, whose
+    ``range_over(t0, t1)`` gives P lo, P hi W and their rates W/s over a window). The plant's own profiles are built
+    by the same load_profiles, so the layer's boxes are those of the loads the plant draws."""
+
+    def __init__(self, net: NetworkScenario):
+        self.load_list = list(net.loads.values())
+        self.profiles = load_profiles(net)
+
+
 class SwitchedProfile:
     """A load profile that draws nothing before ``from_s`` (s), a load switched in, scaled by ``scale``."""
 
@@ -194,8 +212,7 @@ class NetworkPlant:
         self.load_list = list(net.loads.values())
         self.load_names = list(net.loads)
         self.load_scale = net.load_scale
-        self.profiles = [SwitchedProfile(Profile(ld, net.base_dir), ld.active_from_s, net.load_scale)
-                         if ld.type == "cpl" else None for ld in self.load_list]
+        self.profiles = load_profiles(net)
         self.loads = array("d")
         for ld in self.load_list:
             G = net.load_scale / ld.R_ohm if ld.type == "resistive" else 0.0
