@@ -69,19 +69,22 @@ def run(args: argparse.Namespace) -> int:
 
 
 def replay_layer(args: argparse.Namespace) -> int:
-    """A coordinator's log: its allocations and plug-in verdicts recomputed by the layer."""
+    """A coordinator's log: its allocations, window messages and plug-in verdicts recomputed by the layer."""
     from service.network.layer_replay import replay_coordinator
 
     res = replay_coordinator(args.log[0], args.core)
     if args.json:
         print(json.dumps(res))
     elif res["identical"]:
-        print(f"identical: {res['allocations']} allocations over {res['samples']} samples, {res['offers']} plug-in "
-              f"offers and {res['verdicts']} verdicts reproduced bit for bit ({res['gaps']} samples the coordinator "
-              "skipped)")
+        print(f"identical: {res['allocations']} allocations over {res['samples']} samples, {res['windows']} window "
+              f"messages, {res['offers']} plug-in offers and {res['verdicts']} verdicts reproduced bit for bit "
+              f"({res['gaps']} samples the coordinator skipped)")
     else:
-        first = (res["mismatches"] or res["offers_differing"] or res["verdicts_differing"] or [{}])[0]
-        print(f"differs: {res['n_mismatches']} of {res['allocations']} allocations, "
-              f"{len(res['offers_differing'])} offers, {len(res['verdicts_differing'])} verdicts; "
-              f"first: {json.dumps(first)}")
+        first = (res["mismatches"] or res["windows_differing"] or res["offers_differing"] or res["verdicts_differing"]
+                 or [{}])[0]
+        print(f"differs: {res['n_mismatches']} of {res['allocations']} allocations, {res['n_windows_differing']} of "
+              f"{res['windows']} window messages, {len(res['offers_differing'])} offers, "
+              f"{len(res['verdicts_differing'])} verdicts; first: {json.dumps(first)}")
+    for note in res["notes"]:
+        print(f"note: {note}")
     return 0 if res["identical"] else 1

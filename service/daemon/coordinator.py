@@ -55,6 +55,7 @@ from service.plant.network import LoadForecast
 MAX_REQUEST_BYTES = 64 * 1024  # a connect request larger than this is refused unread
 I_MAX_A = 10_000.0  # a grid sample's current beyond this (A) is refused, named
 P_MAX_W = 10_000_000.0  # a load's power beyond this (W) is refused, named
+_NO_RANGE = (0.0, 0.0, 0.0, 0.0)  # Z^{r,in} in a LayerWindow without a range (has_range false)
 
 
 class Coordinator:
@@ -130,9 +131,12 @@ class Coordinator:
         base = f"{c.prefix}/{c.id}"
         self.t_tick, self.t_ev = f"{base}/layer/tick", f"{base}/events"
         self.t_src = [f"{base}/layer/{name}" for name in self.names]
+        self.t_win = [f"{base}/window/{name}" for name in self.names]  # every LayerWindow sent, as sent
         topics = {self.t_tick: ("energyctl.LayerTick", LAYER_TICK), self.t_ev: ("energyctl.Event", None)}
         for t in self.t_src:
             topics[t] = ("energyctl.LayerSource", LAYER_SRC)
+        for t in self.t_win:
+            topics[t] = ("energyctl.LayerWindow", WINDOW)
         self.log_path = c.out
         meta = {"scenario": {"json": self.net.model_dump_json()}, "coordinator": {"json": c.model_dump_json()},
                 "build": {"git": git_revision()}}
@@ -303,10 +307,13 @@ class Coordinator:
         """Each source's LayerWindow from sample seq on: its alpha_s, v_ref, breaker and Z^{r,in} for the window."""
         w, zin, v_ref, connected = self.window, self.zin, self.layer.v_ref, self.connected
         alpha = self.layer.sharing.alpha(connected)
+        rec = self.recorder
         for j in range(self.ns):
             z = zin[j]
-            self.pubs[j].put(WINDOW.encode(seq, t, w, alpha[j], v_ref[j], connected[j], z is not None,
-                                           *(z if z is not None else (0.0, 0.0, 0.0, 0.0))))
+            m = (seq, t, w, alpha[j], v_ref[j], connected[j], z is not None, *(z if z is not None else _NO_RANGE))
+            self.pubs[j].put(WINDOW.encode(*m))
+            if rec is not None:  # what was sent, for the replay (values only, as the other offers)
+                rec.offer(self.t_win[j], t, m)
         self.counters["windows_sent"] += 1
 
     # ---------------------------------------------------------------- plug-in and trips

@@ -72,10 +72,13 @@ def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
             assert replay([str(p) for p in live.daemon_logs(s)], progress=False)["identical"], s
         rc = replay_coordinator(str(live.logs / "coordinator.mcap"))
         assert rc["identical"] and rc["verdicts"] == 1 and rc["offers"] >= 1 and rc["samples"] == 1300, rc
-        # the plug-in was judged on the Z^{r,out} S3 forecast and announced itself
         import json
 
         co = json.loads((tmp_path / "run" / "coordinator.out").read_text().splitlines()[-1])
+        # every LayerWindow it sent (to each source) is in its log and recomputed field for field
+        assert rc["windows"] == co["counters"]["windows_sent"] * len(net.sources) > 0, (rc, co["counters"])
+        assert rc["n_windows_differing"] == 0 and not rc["notes"], rc
+        # the plug-in was judged on the Z^{r,out} S3 forecast and announced itself
         assert [(v["source"], v.get("announced"), v["accepted"]) for v in co["verdicts"]] == [("S3", True, True)]
         # the acceptance checks from the rig's log agree with those of the offline run
         assert [c["ok"] for c in acceptance_checks(rig)] == [c["ok"] for c in acceptance_checks(off)]
