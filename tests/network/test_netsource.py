@@ -63,3 +63,84 @@ def test_a_network_source_steps_through_the_daemon_s_tick_and_sends_the_offline_
         assert st["network"]["v_ref_moves"] == len([k for k in moves if k < len(res.t)]) > 0
     finally:
         d.close()
+
+
+def _drive(d, net, res, ks, extra=None, window_msgs=True):
+    """Steps d (S1's daemon) through samples ks of the offline run res, with extra grid frames (seq -> payloads put
+    on the ring before that sample's own); returns the samples whose command differs from the offline one."""
+    names = list(net.sources)
+    T = 1.0 / net.timing.control_rate_hz
+    moves = {seq: v_ref for _t, seq, v_ref in res.config_events["S1"]}
+    S = {s: res.sources[s] for s in names}
+    connected = [net.sources[s].connected for s in names]
+    extra = extra or {}
+    bad = []
+    for k in ks:
+        t = k * T
+        d.grid.sub = RingStub([*extra.get(k, []), GRID.encode(k, t, [float(S[s]["meas_v"][k]) for s in names],
+                                                              [float(S[s]["meas_i_load"][k]) for s in names],
+                                                              connected, [80.0], [0.0])])
+        d.win.sub = RingStub([WINDOW.encode(k, t, k // d.per_window, 2 / 3, moves[k], True, False, 0.0, 0.0, 0.0,
+                                            0.0)] if window_msgs and k in moves else [])
+        m = S["S1"]
+        d._tick(MEAS.encode(k, t, float(m["meas_i"][k]), float(m["meas_v"][k]), float(m["meas_u"][k]),
+                            float(m["meas_i_load"][k])), 1 + k)
+        if not (d.last_cmd[0] == k and d.last_cmd[2] == m["cmd_du"][k] and d.last_cmd[3] == m["cmd_du_next"][k]):
+            bad.append(k)
+    return bad
+
+
+def _forged(net, seq: int) -> bytes:
+    """A valid grid sample of seq (a stray sender's: every source at 48 V drawing nothing)."""
+    ns = len(net.sources)
+    return GRID.encode(seq, seq / net.timing.control_rate_hz, [48.0] * ns, [0.0] * ns, [True] * ns, [80.0], [0.0])
+
+
+def test_two_forged_grid_samples_far_ahead_do_not_cut_a_source_off_the_rig(offline):
+    """Review F2 item 1: grid frames 100000 and 100001 (valid, the second following the first) among the rig's. The
+    grid seq is judged against the measurements' clock: both are refused by field and the rig's samples are taken
+    on, the commands the offline ones to the bit. Before, the second was taken (it followed the first refused) and
+    every real grid sample after it was refused as 'not after': the source fell back for the rest of the run."""
+    net, res = offline
+    d = _daemon(net, "c")
+    try:
+        bad = _drive(d, net, res, range(len(res.t)), {100: [_forged(net, 100000), _forged(net, 100001)]})
+        st = d.status()
+        assert bad == [] and st["network"]["fallback_ticks"] == 0, (bad[:5], st["rejected"], d.last_reject)
+        assert st["rejected"] == {"grid.seq: invalid": 2}, st["rejected"]
+    finally:
+        d.close()
+
+
+def test_grid_samples_before_the_first_measurement_are_judged_when_it_comes(offline):
+    """A daemon started mid-run (its first measurement at sample 100) that finds forged grid frames far ahead on the
+    key before it: they wait for the measurements' clock and are refused by it; the rig's are taken. Before, there
+    was no ahead check before the first measurement: the forged ones were taken and every rig sample refused."""
+    net, res = offline
+    d = _daemon(net, "c")
+    try:
+        d.grid.sub = RingStub([_forged(net, 100000), _forged(net, 100001)])
+        d._poll_neighbours(0)
+        _drive(d, net, res, range(100, len(res.t)))  # (its commands are not the offline run's: it starts at 100)
+        st = d.status()
+        assert d.grid.seq == len(res.t) - 1 and st["network"]["fallback_ticks"] == 0, (st["rejected"], d.last_reject)
+        assert st["rejected"] == {"grid.seq: invalid": 2}, st["rejected"]
+    finally:
+        d.close()
+
+
+def test_a_run_of_grid_samples_behind_one_taken_is_a_new_run(offline):
+    """Whatever put the newest grid sample taken ahead of the rig's (a forged one the measurements' clock let pass),
+    a window of the rig's samples in a row that follow one another are a new run (as the coordinator's rule), not
+    refused for ever."""
+    net, res = offline
+    d = _daemon(net, "c")
+    try:
+        _drive(d, net, res, range(100))
+        d._set_clock(1000, 0)  # (as if the measurements' clock had been moved to 1000: a forged one taken)
+        d._judge_grid(GRID.decode(_forged(net, 1000)), 0, counted=False)
+        _drive(d, net, res, range(100, len(res.t)))
+        st = d.status()
+        assert d.grid.seq == len(res.t) - 1 and st["network"]["grid_new_runs"] == 1, st["rejected"]
+    finally:
+        d.close()
