@@ -88,6 +88,7 @@ class NetworkSourceDaemon(Daemon):
         self._grid_behind: tuple | None = None  # (seq, how many in a row follow one another) refused as not after
         self.grid_dropped = 0  # held grid samples pushed out unjudged
         self.grid_new_runs = 0  # new runs taken from grid samples refused in a row
+        self._grid_zero: tuple | None = None  # a grid seq 0 mid-run: the rig's restart if seq 1 or meas 0 follows
         self.win = Neighbour(r.coordinator, None)  # the newest window message: seq (applies from), alive
         self.win_vals: tuple | None = None  # the window message applied (schemas.codec.WINDOW order)
         self._win_pending: deque = deque(maxlen=WINDOW_PENDING_MAX)  # received, for a sample still to come
@@ -221,15 +222,27 @@ class NetworkSourceDaemon(Daemon):
                 raise DecodeError("GridSample", "seq", f"{seq} is ahead of the measurements (at {self._meas_seq}); "
                                                        f"taken if they come to it")
             raise _Keep
+        if seq == 1 and self._grid_zero is not None and g.seq >= 1:  # the candidate seq 0 followed: a new run
+            self._new_sharing()
+            self._step_sharing(self._grid_zero, now)
+            self._grid_zero = None
         if seq <= g.seq:
-            if seq != 0:  # (a passed sample, or a stray sender's: the sharing steps on each sample once, in order)
+            if seq == 0:  # a candidate: the rig restarted only if grid seq 1 or the measurement's seq 0 follows it
+                self._grid_zero = gv
+                if self._meas_seq != 0:
+                    return
+                self._grid_zero = None
+            else:  # (a passed sample, or a stray sender's: the sharing steps on each sample once, in order)
                 b = self._grid_behind
                 follows = b is not None and seq == b[0] + 1
                 self._grid_behind = (seq, b[1] + 1 if follows else 1)
                 if self._grid_behind[1] < self.per_window:
                     raise DecodeError("GridSample", "seq", f"{seq} not after {g.seq}")
                 self.grid_new_runs += 1  # a window of samples in a row behind one taken: that one was not the rig's
-            self._new_sharing()  # (seq 0 again: the rig restarted, as a measurement's seq 0 says)
+            self._new_sharing()  # (seq 0 again, with the measurement's: the rig restarted)
+        elif self._grid_zero is not None:  # a seq 0 not followed by 1 nor by the measurement's 0: a stray one
+            self._grid_zero = None
+            self._reject("grid.seq: invalid", now, "0 mid-run, followed by neither grid seq 1 nor the measurement's 0")
         self._grid_behind = None
         self._step_sharing(gv, now)
 
@@ -252,6 +265,10 @@ class NetworkSourceDaemon(Daemon):
         the first measurement, or ahead of the measurements) judged again. While the grid samples taken keep pace
         with the measurements, those refused as ahead are not the rig's (a stray sender's): dropped, counted already."""
         self._meas_seq = seq
+        if seq == 0 and self._grid_zero is not None:  # the measurement's seq 0 follows the candidate: a new run
+            gz, self._grid_zero = self._grid_zero, None
+            self._new_sharing()
+            self._step_sharing(gz, now)
         held = self._grid_held
         if not held:
             return

@@ -144,3 +144,32 @@ def test_a_run_of_grid_samples_behind_one_taken_is_a_new_run(offline):
         assert d.grid.seq == len(res.t) - 1 and st["network"]["grid_new_runs"] == 1, st["rejected"]
     finally:
         d.close()
+
+
+def test_a_stray_grid_sample_of_seq_0_mid_run_does_not_reset_the_sharing(offline):
+    """Review F2 item 2: a valid grid sample of seq 0 among the rig's at sample 150 (a stray sender's). It is a
+    candidate only (a rig restart shows as the measurement's seq 0 or grid seq 1 after it): refused when the rig's
+    151 comes, and the commands stay the offline run's to the bit. Before, it reset the sharing mid-run (its rate
+    filter, breaker memory and k_prev) and the commands after it differed."""
+    net, res = offline
+    d = _daemon(net, "c")
+    try:
+        bad = _drive(d, net, res, range(len(res.t)), {151: [_forged(net, 0)]})
+        st = d.status()
+        assert bad == [] and st["rejected"] == {"grid.seq: invalid": 1}, (bad[:5], st["rejected"])
+    finally:
+        d.close()
+
+
+def test_a_grid_seq_0_followed_by_seq_1_is_a_rig_restart(offline):
+    """The candidate seq 0 is the rig's restart when grid seq 1 follows it (its measurement's seq 0 lost): the
+    sharing starts again from it, as at a start."""
+    net, res = offline
+    d = _daemon(net, "c")
+    try:
+        _drive(d, net, res, range(200))
+        d.grid.sub = RingStub([_forged(net, 0), _forged(net, 1)])
+        d._poll_neighbours(0)
+        assert d.grid.seq == 1 and d.grid.count == 2 and d.sharing.k_prev == 1, d.last_reject
+    finally:
+        d.close()
