@@ -69,6 +69,13 @@ class Sharing:
         """A network source daemon's (schemas.component.NetworkRole) at its sample period T (s)."""
         return cls(role.shares, T, role.sharing, role.carry_power_W, role.plug_in_ramp_s, role.sources_connected)
 
+    def seed(self, connected: list[bool]) -> None:
+        """Take the breakers as they are (connected: which sources are) as the ones it started with: no ramp for a
+        source already connected. For a daemon started or restarted mid-run, at its first grid sample (a source that
+        connected before then is not one that just connected)."""
+        self.was_connected[:] = connected
+        self.connected_at[:] = [-1] * self.ns
+
     def step(self, k: int, P: list[float], connected: list[bool]) -> tuple[list[float], list[float]]:
         """(P^{r,in} per source W, its filtered rate W/s) for sample k, from the power each source's lines draw (P,
         W; 0 for a disconnected source) and which are connected."""

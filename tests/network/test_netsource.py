@@ -173,3 +173,21 @@ def test_a_grid_seq_0_followed_by_seq_1_is_a_rig_restart(offline):
         assert d.grid.seq == 1 and d.grid.count == 2 and d.sharing.k_prev == 1, d.last_reject
     finally:
         d.close()
+
+
+def test_a_daemon_started_mid_run_takes_its_share_at_once(offline):
+    """Review F2 item 3: S1's daemon started at sample 1000 of a run in which S3 (open at the scenario's start)
+    connected earlier. Its first grid sample's breakers are the ones it starts with: P^{r,in} = -alpha_S1 sum P_k
+    at once (2/4 of 2880 W), not with S3 'just connected' and ramping from 0 (2/3: S1 took more than its share)."""
+    net, _res = offline
+    d = _daemon(net, "c")
+    try:
+        shares = [s.share for s in net.sources.values()]
+        assert not net.sources["S3"].connected and d.sharing.ramp_ticks > 0
+        d._set_clock(1000, 0)
+        d.grid.sub = RingStub([GRID.encode(1000, 1.0, [48.0] * 3, [20.0] * 3, [True] * 3, [80.0], [0.0])])
+        d._poll_neighbours(0)
+        assert d.grid.seq == 1000, d.last_reject
+        assert d.grid.P == -(shares[0] / sum(shares)) * 3 * 960.0
+    finally:
+        d.close()
