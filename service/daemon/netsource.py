@@ -306,8 +306,9 @@ class NetworkSourceDaemon(Daemon):
 
     def _await_neighbours(self, seq: int, deadline: int) -> None:
         """Lockstep: poll until the grid sample for ``seq`` came, then, where a window message is due (a window's
-        first sample, a breaker change that sample shows), until the coordinator's for ``seq`` came (not while its
-        token is gone nor while it lags), or the deadline (ns) passes: then count the timeout."""
+        first sample, a breaker change that sample shows), until the coordinator's for ``seq`` came (at a breaker
+        change: the one made after that sample; not while its token is gone nor while it lags), or the deadline (ns)
+        passes: then count the timeout."""
         now_ns, stop, g, w = time.monotonic_ns, self._stop, self.grid, self.win
         self._set_clock(seq, now_ns())
         while g.seq < seq and not g.lagging and not stop.is_set():
@@ -323,9 +324,12 @@ class NetworkSourceDaemon(Daemon):
             g.lagging = False
         if seq % self.per_window and self._changed_at != seq:
             return
-        while w.seq < seq and w.alive is not False and not w.lagging and not stop.is_set():
+        # at a breaker change, the message made after that sample (t >= t(seq)): on a window's first sample the
+        # window-end message made after the sample before it is for seq too, and the breakers' comes after it
+        t_min = (seq - 0.5) * self.period_s if self._changed_at == seq else -1.0
+        while (w.seq < seq or w.t < t_min) and w.alive is not False and not w.lagging and not stop.is_set():
             self._poll_neighbours(now_ns())
-            if w.seq >= seq:
+            if w.seq >= seq and w.t >= t_min:
                 break
             if now_ns() > deadline:
                 self.stats.lockstep_timeouts += 1

@@ -191,3 +191,37 @@ def test_a_daemon_started_mid_run_takes_its_share_at_once(offline):
         assert d.grid.P == -(shares[0] / sum(shares)) * 3 * 960.0
     finally:
         d.close()
+
+
+class _Trickle(RingStub):
+    """A ring whose payloads come in polls: a None in the list ends a poll (the next message not there yet)."""
+
+    def try_recv(self):
+        if self.items and self.items[0] is None:
+            self.items.pop(0)
+            return None
+        return super().try_recv()
+
+
+def test_lockstep_waits_for_the_breaker_change_message_on_a_window_s_first_sample(offline):
+    """Review F2 item 4: a breaker change (S3 closes) shown by the grid sample of a window's first sample (100, with
+    50-sample windows). The window-end message made after sample 99 is for 100 too; the breaker change's, made after
+    sample 100, comes a poll later. The lockstep wait takes both before the tick (as offline, which applies the
+    change's range from 100). Before, the first satisfied it and the tick could go without the second."""
+    import time
+
+    net, res = offline
+    d = _daemon(net, "c")
+    try:
+        _drive(d, net, res, range(100))
+        assert 100 % d.per_window == 0
+        T = d.period_s
+        d.grid.sub = RingStub([GRID.encode(100, 100 * T, [48.0] * 3, [20.0] * 3, [True] * 3, [80.0], [0.0])])
+        end = WINDOW.encode(100, 99 * T, 2, 2 / 3, 80.0, True, True, -900.0, -100.0, -1e5, 1e5)
+        change = WINDOW.encode(100, 100 * T, 2, 2 / 4, 80.0, True, True, -700.0, -50.0, -1e5, 1e5)
+        d.win.sub = _Trickle([end, None, None, change])
+        d._await_neighbours(100, time.monotonic_ns() + 5_000_000_000)
+        assert d._changed_at == 100 and d.stats.lockstep_timeouts == 0, (d.rejected, d.win.seq, d.win.t)
+        assert [wv[1] for wv in d._win_pending] == [99 * T, 100 * T]
+    finally:
+        d.close()
