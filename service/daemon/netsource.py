@@ -92,6 +92,7 @@ class NetworkSourceDaemon(Daemon):
         self.win = Neighbour(r.coordinator, None)  # the newest window message: seq (applies from), alive
         self.win_vals: tuple | None = None  # the window message applied (schemas.codec.WINDOW order)
         self._win_pending: deque = deque(maxlen=WINDOW_PENDING_MAX)  # received, for a sample still to come
+        self.win_dropped = 0  # window messages pushed out of _win_pending before their sample
         self.per_window = max(1, int(round(r.window_s / self.period_s)))
         self.lines: list[Neighbour] = []
         self.connected: bool | None = None  # its breaker as the newest grid sample shows it (None: none yet)
@@ -165,6 +166,8 @@ class NetworkSourceDaemon(Daemon):
             except DecodeError as e:
                 self._reject(f"window.{e.field}: invalid", now, e.reason)
                 continue
+            if len(self._win_pending) == WINDOW_PENDING_MAX:  # the oldest pushed out: counted
+                self.win_dropped += 1
             self._win_pending.append(v)
             w.seq, w.t, w.rx_ns = v[0], v[1], now
             w.count += 1
@@ -296,10 +299,16 @@ class NetworkSourceDaemon(Daemon):
 
     def _check_window(self, v: tuple) -> None:
         """Refuse (DecodeError naming the field) a window message no layer of this network sends: a v_ref outside
-        the layer's bounds, a sample more than two windows ahead of the newest one stepped on."""
+        the layer's bounds, a range whose ends are not in order, a sample more than two windows ahead of the newest
+        one stepped on."""
         r = self.role
         if (r.v_ref_min_V is not None and v[4] < r.v_ref_min_V) or (r.v_ref_max_V is not None and v[4] > r.v_ref_max_V):
             raise DecodeError("LayerWindow", "v_ref_V", f"{v[4]:g} V outside [{r.v_ref_min_V}, {r.v_ref_max_V}]")
+        if v[6]:  # a range: its ends in order
+            if not v[7] <= v[8]:
+                raise DecodeError("LayerWindow", "Z_P_min", f"{v[7]:g} W above Z_P_max {v[8]:g} W")
+            if not v[9] <= v[10]:
+                raise DecodeError("LayerWindow", "Z_Qdot_min", f"{v[9]:g} W/s above Z_Qdot_max {v[10]:g} W/s")
         ls = self.last_sample
         if ls is not None and v[0] > ls[0] + 2 * self.per_window + 1:  # the coordinator sends at most a window ahead
             raise DecodeError("LayerWindow", "seq", f"{v[0]} is ahead of the samples (newest {ls[0]})")
@@ -515,6 +524,7 @@ class NetworkSourceDaemon(Daemon):
             "P_r_in_used": self.ctl.P_in_used, "v_ref_V": self.ctl.v_ref_V, "v_ref_moves": self.v_ref_moves,
             "fallback_ticks": self.fallback_ticks, "mode_switches": self.ctl.switches,
             "grid_held": len(self._grid_held), "grid_dropped": self.grid_dropped, "grid_new_runs": self.grid_new_runs,
+            "window_dropped": self.win_dropped,
             "lines": {nb.id: {"P_r_out": nb.P, "messages": nb.count} for nb in self.lines},
             "handshake": dict(self.handshake),
             "not_connected": self._why_not_connected(),

@@ -131,6 +131,7 @@ class InterconnectionLayer:
         self.win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
         self.win_delivered = self.win_load = 0.0
         self.loss_frac = 0.0  # line losses as a fraction of the load over the last window (Z^{r,in}'s allowance)
+        self.next_window: int | None = None  # the window whose start closes the current one (None: no sample yet)
 
     @property
     def active(self) -> bool:
@@ -178,8 +179,14 @@ class InterconnectionLayer:
         """After tick k: (the window that starts next, or None if k does not end one; the v_ref moves (source
         index, new v_ref V) to apply before tick k + 1). fresh: the source gets the layer's messages (a source that
         does not keeps its v_ref); active: it is regulating (per-source mode moves only those to their terminal)."""
-        if (k + 1) % self.per_window:
+        # the window closes when the window of k + 1 is past the one it is in (offline, which sees every sample: at
+        # (k + 1) % per_window == 0; a realtime coordinator that skipped that sample closes it at the next it takes)
+        nxt = (k + 1) // self.per_window
+        if self.next_window is None:  # its first sample (a coordinator started mid-run: in the window of k)
+            self.next_window = k // self.per_window + 1
+        if nxt < self.next_window:
             return None, []
+        self.next_window = nxt + 1
         lay = self.cfg
         if self.win_load > 0.0:
             self.loss_frac = max(0.0, self.win_delivered / self.win_load - 1.0)

@@ -225,3 +225,42 @@ def test_lockstep_waits_for_the_breaker_change_message_on_a_window_s_first_sampl
         assert [wv[1] for wv in d._win_pending] == [99 * T, 100 * T]
     finally:
         d.close()
+
+
+def test_window_messages_with_ranges_out_of_order_are_refused_by_field_and_drops_counted(offline):
+    """Review F2 item 5: a window message with Z_P_min > Z_P_max (or Z_Qdot_min > Z_Qdot_max) is refused by field,
+    never set on the feasibility monitor; more pending than the queue holds are counted, not dropped silently."""
+    net, res = offline
+    d = _daemon(net, "c")
+    try:
+        _drive(d, net, res, range(10))
+        w = [WINDOW.encode(10, 0.009, 0, 2 / 3, 80.0, True, True, -100.0, -900.0, -1e5, 1e5),
+             WINDOW.encode(10, 0.009, 0, 2 / 3, 80.0, True, True, -900.0, -100.0, 1e5, -1e5)]
+        d.win.sub = RingStub(w + [WINDOW.encode(11 + i, 0.009, 0, 2 / 3, 80.0, True, False, 0, 0, 0, 0)
+                                  for i in range(10)])
+        d._poll_neighbours(0)
+        st = d.status()
+        assert st["rejected"] == {"window.Z_P_min: invalid": 1, "window.Z_Qdot_min: invalid": 1}, st["rejected"]
+        assert st["network"]["window_dropped"] == 2 and len(d._win_pending) == 8
+    finally:
+        d.close()
+
+
+def test_a_layer_closes_a_window_whose_last_sample_it_did_not_see():
+    """Review F2 item 5: a realtime coordinator that skips a window's last sample (49 with 50-sample windows)
+    closes the window at the next sample it takes (the window of k + 1 past the current one), once; offline, which
+    sees every sample, closes it at 49 as before. Before, only (k + 1) % per_window == 0 closed one: the window's
+    message was never sent."""
+    from service.network.layer import InterconnectionLayer
+
+    net = load_network(SCENARIOS / "network" / "realtime.toml", ["events=[]", "timing.duration_s=0.3"])
+    ns = len(net.sources)
+    args = ([True] * ns, [True] * ns, [True] * ns)
+    every = InterconnectionLayer(net, None)
+    assert every.per_window == 50
+    assert [k for k in range(150) if every.window_end(k, *args)[0] is not None] == [49, 99, 149]
+    skips = InterconnectionLayer(net, None)
+    closed = [(k, skips.window_end(k, *args)[0]) for k in [*range(49), 51, 52, *range(53, 99), 100, 101]]
+    assert [c for c in closed if c[1] is not None] == [(51, 1), (100, 2)]
+    late = InterconnectionLayer(net, None)  # started mid-run: its first window closes at that window's end
+    assert [(k, late.window_end(k, *args)[0]) for k in (130, 149)] == [(130, None), (149, 3)]
