@@ -283,7 +283,7 @@ class Coordinator:
                 self._tripping.discard(name)
             elif self.alive[name] is False and self.cfg.trip_on_loss and name not in self._tripping:
                 self._trip(name)
-        self.want = want
+        self.want[:] = want  # (the layer's list, updated in place at its next step)
         if topology:  # the range for the new breakers, from this sample on (a lockstep source waits for it)
             self._send_window(seq, t)
         rec = self.recorder

@@ -264,3 +264,59 @@ def test_a_layer_closes_a_window_whose_last_sample_it_did_not_see():
     assert [c for c in closed if c[1] is not None] == [(51, 1), (100, 2)]
     late = InterconnectionLayer(net, None)  # started mid-run: its first window closes at that window's end
     assert [(k, late.window_end(k, *args)[0]) for k in (130, 149)] == [(130, None), (149, 3)]
+
+
+def _step_as_before(sh, k, P, connected):
+    """Sharing.step as it was (a new list per quantity per sample): the reference the in-place one must equal."""
+    ns = sh.ns
+    if sh.mode == "live-sum":
+        shares = sh.shares
+        if sh.ramp_ticks:
+            for j in range(ns):
+                if connected[j] and not sh.was_connected[j]:
+                    sh.connected_at[j] = k
+                sh.was_connected[j] = connected[j]
+            shares = [s * min(1.0, (k - sh.connected_at[j]) / sh.ramp_ticks) if sh.connected_at[j] >= 0 else s
+                      for j, s in enumerate(shares)]
+        carrying = [j for j in range(ns) if connected[j] and abs(P[j]) >= sh.carry_power_W]
+        total = sum(P[j] for j in carrying)
+        weight = sum(shares[j] for j in carrying) or 1.0
+        want = [-(shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
+    else:
+        want = [-P[j] for j in range(ns)]
+    dt = (k - sh.k_prev) * sh.T if sh.k_prev is not None and k > sh.k_prev else 0.0
+    for j in range(ns):
+        raw = (want[j] - sh.want_prev[j]) / dt if dt else 0.0
+        sh.want_rate[j] += sh.rate_alpha * (raw - sh.want_rate[j])
+        sh.want_prev[j] = want[j]
+    sh.k_prev = k
+    return want, list(sh.want_rate)
+
+
+@pytest.mark.parametrize("mode", ["live-sum", "none"])
+def test_sharing_steps_in_place_to_the_same_bits(mode):
+    """Review F2 item 6: Sharing.step updates its result lists in place (none allocated per sample on the loop
+    thread) and gives the bits it gave with new lists: breakers that open and close (the plug-in ramp), sources
+    under the carrying threshold, samples skipped."""
+    import random
+
+    from service.network.layer import Sharing
+
+    rng = random.Random(7)
+    shares = [2.0, 1.0, 1.0, 0.5]
+    new = Sharing(shares, 1e-3, mode, 5.0, 0.05, [True, True, False, True])
+    old = Sharing(shares, 1e-3, mode, 5.0, 0.05, [True, True, False, True])
+    connected = [True, True, False, True]
+    k, lists = 0, None
+    for _ in range(3000):
+        k += 1 if rng.random() < 0.9 else rng.randint(2, 5)
+        if rng.random() < 0.01:
+            j = rng.randrange(4)
+            connected[j] = not connected[j]
+        P = [rng.choice([rng.uniform(-10, 10), rng.uniform(-3000, 3000)]) if c else 0.0 for c in connected]
+        want, rate = new.step(k, P, list(connected))
+        ref_want, ref_rate = _step_as_before(old, k, P, list(connected))
+        bits = [x.hex() for x in (*want, *rate)]
+        assert bits == [x.hex() for x in (*ref_want, *ref_rate)], k  # the same bits (-0.0 told from 0.0 too)
+        lists = lists or (want, rate)
+        assert want is lists[0] and rate is lists[1]
