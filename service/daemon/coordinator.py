@@ -274,6 +274,8 @@ class Coordinator:
             self.window = seq // layer.per_window
             self.zin = layer.ranges(self.window, connected)
         P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(ns)]
+        if seq > 0 and layer.sharing.k_prev is None:  # started mid-run: the breakers as they are (no ramp)
+            layer.sharing.seed(connected)
         want, rate = layer.allocate(seq, P, connected)
         if not all(map(isfinite, want)) or not all(map(isfinite, rate)):  # a backstop: never send these
             layer.want_rate[:] = [0.0] * ns
@@ -285,7 +287,7 @@ class Coordinator:
                 self._tripping.discard(name)
             elif self.alive[name] is False and self.cfg.trip_on_loss and name not in self._tripping:
                 self._trip(name)
-        self.want = want
+        self.want[:] = want  # (the layer's list, updated in place at its next step)
         if topology:  # the range for the new breakers, from this sample on (a lockstep source waits for it)
             self._send_window(seq, t)
         rec = self.recorder

@@ -60,6 +60,10 @@ WINDOW_PENDING_MAX = 8  # window messages held until their sample comes (lockste
 GRID_RING = 64  # grid samples kept between two polls (a lockstep daemon polls every sample)
 
 
+class _Keep(Exception):  # noqa: N818 - a held grid sample still ahead of the measurements: kept held
+    pass
+
+
 class NetworkSourceDaemon(Daemon):
     """See the module docstring."""
 
@@ -78,10 +82,17 @@ class NetworkSourceDaemon(Daemon):
         self.sharing = Sharing.of_role(r, self.period_s)
         self.grid_connected: list[bool] | None = None  # the breakers of the newest grid sample
         self._changed_at = -1  # the grid sample whose breakers differ from the one before it
-        self._grid_jump = -2  # the last grid sample refused as ahead of the samples
+        self._meas_seq = -1  # the measurements' clock: the sample stepped on or waited for (-1: none yet)
+        self._grid_held: deque = deque(maxlen=GRID_RING)  # grid samples not judged yet: no measurement, or ahead
+        self._grid_ahead_n = 1 + int(round(r.stale_s / self.period_s))  # samples a grid sample may lead them by
+        self._grid_behind: tuple | None = None  # (seq, how many in a row follow one another) refused as not after
+        self.grid_dropped = 0  # held grid samples pushed out unjudged
+        self.grid_new_runs = 0  # new runs taken from grid samples refused in a row
+        self._grid_zero: tuple | None = None  # a grid seq 0 mid-run: the rig's restart if seq 1 or meas 0 follows
         self.win = Neighbour(r.coordinator, None)  # the newest window message: seq (applies from), alive
         self.win_vals: tuple | None = None  # the window message applied (schemas.codec.WINDOW order)
         self._win_pending: deque = deque(maxlen=WINDOW_PENDING_MAX)  # received, for a sample still to come
+        self.win_dropped = 0  # window messages pushed out of _win_pending before their sample
         self.per_window = max(1, int(round(r.window_s / self.period_s)))
         self.lines: list[Neighbour] = []
         self.connected: bool | None = None  # its breaker as the newest grid sample shows it (None: none yet)
@@ -155,6 +166,8 @@ class NetworkSourceDaemon(Daemon):
             except DecodeError as e:
                 self._reject(f"window.{e.field}: invalid", now, e.reason)
                 continue
+            if len(self._win_pending) == WINDOW_PENDING_MAX:  # the oldest pushed out: counted
+                self.win_dropped += 1
             self._win_pending.append(v)
             w.seq, w.t, w.rx_ns = v[0], v[1], now
             w.count += 1
@@ -168,21 +181,17 @@ class NetworkSourceDaemon(Daemon):
                 self.recorder.offer(nb.topic, v[1], v)
 
     def _take_grid(self, payload: bytes, now: int) -> None:
-        """One grid sample: checked (DecodeError naming the field), then the sharing stepped on it."""
-        seq, t, v, i_out, connected, _bus_v, _load_P = GRID.decode(payload)
-        r, g = self.role, self.grid
+        """One grid sample: checked (DecodeError naming the field), then judged against the measurements' clock
+        (_judge_grid)."""
+        gv = GRID.decode(payload)
+        seq, t, v, i_out = gv[0], gv[1], gv[2], gv[3]
+        r = self.role
         ns = len(r.shares)
         if len(v) != ns:
             raise DecodeError("GridSample", "v", f"{len(v)} sources; the network has {ns}")
         T = self.period_s
         if abs(t - seq * T) > 0.5 * T:
             raise DecodeError("GridSample", "t", f"{t!r} s is not seq x T ({seq} x {T:g} s)")
-        ls = self.last_sample
-        if ls is not None and t > ls[1] + r.stale_s and seq > ls[0] + 1 and seq != self._grid_jump + 1:
-            # ahead of the samples: a stray sender's, or the rig's after this daemon was cut off (its next sample
-            # follows this one: then taken, before the measurements' own clock resyncs)
-            self._grid_jump = seq
-            raise DecodeError("GridSample", "seq", f"{seq} is ahead of the samples (newest {ls[0]})")
         hi = self.cfg.meas_v_max_V
         for j in range(ns):
             if not 0.0 <= v[j] <= hi:
@@ -192,11 +201,61 @@ class NetworkSourceDaemon(Daemon):
             if not abs(v[j] * i_out[j]) <= r.P_max_W:
                 raise DecodeError("GridSample", f"i_out[{j}]", f"|v i_out| {abs(v[j] * i_out[j]):g} W above "
                                                               f"{r.P_max_W:g}")
+        if self._meas_seq < 0:  # no measurement yet: nothing to judge its seq by; judged when the first comes
+            if len(self._grid_held) == self._grid_held.maxlen:
+                self.grid_dropped += 1
+            self._grid_held.append((gv, False))
+            return
+        self._judge_grid(gv, now, counted=False)
+
+    def _judge_grid(self, gv: tuple, now: int, counted: bool) -> None:
+        """A checked grid sample judged by its seq against the measurements' clock (self._meas_seq: the measurement
+        stepped on or waited for), then the sharing stepped on it. More than ``ahead_n`` samples ahead of the
+        measurements it is refused (DecodeError; once: counted says it was) and held, taken if the measurements catch up
+        with it (a rig seen again after this daemon was cut off: its measurements jump with it); forged frames far
+        ahead never are. A seq not after the newest taken is refused, unless ``per_window`` such refusals in a row
+        follow one another on the measurements' clock: then they are a new run (as the coordinator's rule)."""
+        seq = gv[0]
+        g = self.grid
+        if seq > self._meas_seq + self._grid_ahead_n:
+            if not counted:
+                if len(self._grid_held) == self._grid_held.maxlen:
+                    self.grid_dropped += 1
+                self._grid_held.append((gv, True))
+                raise DecodeError("GridSample", "seq", f"{seq} is ahead of the measurements (at {self._meas_seq}); "
+                                                       f"taken if they come to it")
+            raise _Keep
+        if seq == 1 and self._grid_zero is not None and g.seq >= 1:  # the candidate seq 0 followed: a new run
+            self._new_sharing()
+            self._step_sharing(self._grid_zero, now)
+            self._grid_zero = None
         if seq <= g.seq:
-            if seq != 0:  # (a passed sample, or a stray sender's: the sharing steps on each sample once, in order)
-                raise DecodeError("GridSample", "seq", f"{seq} not after {g.seq}")
-            self._new_sharing()  # seq 0 again: the rig restarted (as a measurement's seq 0 says)
+            if seq == 0:  # a candidate: the rig restarted only if grid seq 1 or the measurement's seq 0 follows it
+                self._grid_zero = gv
+                if self._meas_seq != 0:
+                    return
+                self._grid_zero = None
+            else:  # (a passed sample, or a stray sender's: the sharing steps on each sample once, in order)
+                b = self._grid_behind
+                follows = b is not None and seq == b[0] + 1
+                self._grid_behind = (seq, b[1] + 1 if follows else 1)
+                if self._grid_behind[1] < self.per_window:
+                    raise DecodeError("GridSample", "seq", f"{seq} not after {g.seq}")
+                self.grid_new_runs += 1  # a window of samples in a row behind one taken: that one was not the rig's
+            self._new_sharing()  # (seq 0 again, with the measurement's: the rig restarted)
+        elif self._grid_zero is not None:  # a seq 0 not followed by 1 nor by the measurement's 0: a stray one
+            self._grid_zero = None
+            self._reject("grid.seq: invalid", now, "0 mid-run, followed by neither grid seq 1 nor the measurement's 0")
+        self._grid_behind = None
+        self._step_sharing(gv, now)
+
+    def _step_sharing(self, gv: tuple, now: int) -> None:
+        seq, t, v, i_out, connected = gv[0], gv[1], gv[2], gv[3], gv[4]
+        r, g = self.role, self.grid
+        ns = len(r.shares)
         P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(ns)]
+        if seq > 0 and self.sharing.k_prev is None:  # started (or restarted) mid-run: the breakers as they are now
+            self.sharing.seed(connected)
         want, rate = self.sharing.step(seq, P, connected)
         if self.grid_connected is not None and connected != self.grid_connected:
             self._changed_at = seq
@@ -205,6 +264,31 @@ class NetworkSourceDaemon(Daemon):
         g.seq, g.t, g.P, g.P_dot = seq, t, want[i], rate[i]
         g.rx_ns = now
         g.count += 1
+
+    def _set_clock(self, seq: int, now: int) -> None:
+        """The measurements' clock is at ``seq`` (the sample stepped on or waited for): the grid samples held (before
+        the first measurement, or ahead of the measurements) judged again. While the grid samples taken keep pace
+        with the measurements, those refused as ahead are not the rig's (a stray sender's): dropped, counted already."""
+        self._meas_seq = seq
+        if seq == 0 and self._grid_zero is not None:  # the measurement's seq 0 follows the candidate: a new run
+            gz, self._grid_zero = self._grid_zero, None
+            self._new_sharing()
+            self._step_sharing(gz, now)
+        held = self._grid_held
+        if not held:
+            return
+        if self.grid.seq >= seq - 1 and all(counted for _gv, counted in held):
+            held.clear()
+            return
+        items = sorted(held, key=lambda h: h[0][0])
+        held.clear()
+        for gv, counted in items:
+            try:
+                self._judge_grid(gv, now, counted)
+            except _Keep:
+                held.append((gv, True))
+            except DecodeError as e:
+                self._reject(f"grid.{e.field}: invalid", now, e.reason)
 
     def _new_sharing(self) -> None:
         g = self.grid
@@ -215,19 +299,27 @@ class NetworkSourceDaemon(Daemon):
 
     def _check_window(self, v: tuple) -> None:
         """Refuse (DecodeError naming the field) a window message no layer of this network sends: a v_ref outside
-        the layer's bounds, a sample more than two windows ahead of the newest one stepped on."""
+        the layer's bounds, a range whose ends are not in order, a sample more than two windows ahead of the newest
+        one stepped on."""
         r = self.role
         if (r.v_ref_min_V is not None and v[4] < r.v_ref_min_V) or (r.v_ref_max_V is not None and v[4] > r.v_ref_max_V):
             raise DecodeError("LayerWindow", "v_ref_V", f"{v[4]:g} V outside [{r.v_ref_min_V}, {r.v_ref_max_V}]")
+        if v[6]:  # a range: its ends in order
+            if not v[7] <= v[8]:
+                raise DecodeError("LayerWindow", "Z_P_min", f"{v[7]:g} W above Z_P_max {v[8]:g} W")
+            if not v[9] <= v[10]:
+                raise DecodeError("LayerWindow", "Z_Qdot_min", f"{v[9]:g} W/s above Z_Qdot_max {v[10]:g} W/s")
         ls = self.last_sample
         if ls is not None and v[0] > ls[0] + 2 * self.per_window + 1:  # the coordinator sends at most a window ahead
             raise DecodeError("LayerWindow", "seq", f"{v[0]} is ahead of the samples (newest {ls[0]})")
 
     def _await_neighbours(self, seq: int, deadline: int) -> None:
         """Lockstep: poll until the grid sample for ``seq`` came, then, where a window message is due (a window's
-        first sample, a breaker change that sample shows), until the coordinator's for ``seq`` came (not while its
-        token is gone nor while it lags), or the deadline (ns) passes: then count the timeout."""
+        first sample, a breaker change that sample shows), until the coordinator's for ``seq`` came (at a breaker
+        change: the one made after that sample; not while its token is gone nor while it lags), or the deadline (ns)
+        passes: then count the timeout."""
         now_ns, stop, g, w = time.monotonic_ns, self._stop, self.grid, self.win
+        self._set_clock(seq, now_ns())
         while g.seq < seq and not g.lagging and not stop.is_set():
             self._poll_neighbours(now_ns())
             if g.seq >= seq:
@@ -241,9 +333,12 @@ class NetworkSourceDaemon(Daemon):
             g.lagging = False
         if seq % self.per_window and self._changed_at != seq:
             return
-        while w.seq < seq and w.alive is not False and not w.lagging and not stop.is_set():
+        # at a breaker change, the message made after that sample (t >= t(seq)): on a window's first sample the
+        # window-end message made after the sample before it is for seq too, and the breakers' comes after it
+        t_min = (seq - 0.5) * self.period_s if self._changed_at == seq else -1.0
+        while (w.seq < seq or w.t < t_min) and w.alive is not False and not w.lagging and not stop.is_set():
             self._poll_neighbours(now_ns())
-            if w.seq >= seq:
+            if w.seq >= seq and w.t >= t_min:
                 break
             if now_ns() > deadline:
                 self.stats.lockstep_timeouts += 1
@@ -273,6 +368,8 @@ class NetworkSourceDaemon(Daemon):
     # ---------------------------------------------------------------- the tick (Daemon._step, with these parts)
     def _begin(self, v: tuple) -> None:
         """A new run (the rig restarted) forgets the previous one's; the previous sample's time, for a v_ref event."""
+        if v[0] != self._meas_seq:
+            self._set_clock(v[0], _now_ns())
         if self.restarts != self._seen_restarts:
             self._forget_run(v[0])
         self._t_prev = self.last_sample[1] if self.last_sample is not None else v[1]
@@ -426,6 +523,8 @@ class NetworkSourceDaemon(Daemon):
                     "Z_in": list(wv[7:11]) if wv[6] else None, "received_ago_s": (now - w.rx_ns) / 1e9})},
             "P_r_in_used": self.ctl.P_in_used, "v_ref_V": self.ctl.v_ref_V, "v_ref_moves": self.v_ref_moves,
             "fallback_ticks": self.fallback_ticks, "mode_switches": self.ctl.switches,
+            "grid_held": len(self._grid_held), "grid_dropped": self.grid_dropped, "grid_new_runs": self.grid_new_runs,
+            "window_dropped": self.win_dropped,
             "lines": {nb.id: {"P_r_out": nb.P, "messages": nb.count} for nb in self.lines},
             "handshake": dict(self.handshake),
             "not_connected": self._why_not_connected(),

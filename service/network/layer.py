@@ -58,6 +58,7 @@ class Sharing:
         self.was_connected = list(connected)
         self.connected_at = [-1] * ns  # the sample each source last connected at (-1: connected from the start)
         self.rate_alpha = T / (T + RATE_TAU_S)
+        self._want, self._shares_now = [0.0] * ns, [0.0] * ns  # step's results and ramped shares, reused
 
     @classmethod
     def of(cls, net: NetworkScenario) -> Sharing:
@@ -70,25 +71,42 @@ class Sharing:
         """A network source daemon's (schemas.component.NetworkRole) at its sample period T (s)."""
         return cls(role.shares, T, role.sharing, role.carry_power_W, role.plug_in_ramp_s, role.sources_connected)
 
+    def seed(self, connected: list[bool]) -> None:
+        """Take the breakers as they are (connected: which sources are) as the ones it started with: no ramp for a
+        source already connected. For a daemon started or restarted mid-run, at its first grid sample (a source that
+        connected before then is not one that just connected)."""
+        self.was_connected[:] = connected
+        self.connected_at[:] = [-1] * self.ns
+
     def step(self, k: int, P: list[float], connected: list[bool]) -> tuple[list[float], list[float]]:
         """(P^{r,in} per source W, its filtered rate W/s) for sample k, from the power each source's lines draw (P,
-        W; 0 for a disconnected source) and which are connected."""
+        W; 0 for a disconnected source) and which are connected. Both lists are this instance's, updated in place
+        at the next step: read them before it (copy to keep)."""
         ns = self.ns
+        want = self._want  # updated in place: no list per sample on a daemon's loop thread
         if self.mode == "live-sum":
             shares = self.shares
             if self.ramp_ticks:  # a source that just connected takes its share over plug_in_ramp_s
+                was, at, now, ramp = self.was_connected, self.connected_at, self._shares_now, self.ramp_ticks
                 for j in range(ns):
-                    if connected[j] and not self.was_connected[j]:
-                        self.connected_at[j] = k
-                    self.was_connected[j] = connected[j]
-                shares = [sh * min(1.0, (k - self.connected_at[j]) / self.ramp_ticks) if self.connected_at[j] >= 0
-                          else sh for j, sh in enumerate(shares)]
-            carrying = [j for j in range(ns) if connected[j] and abs(P[j]) >= self.carry_power_W]
-            total = sum(P[j] for j in carrying)
-            weight = sum(shares[j] for j in carrying) or 1.0
-            want = [-(shares[j] / weight) * total if connected[j] else 0.0 for j in range(ns)]
+                    if connected[j] and not was[j]:
+                        at[j] = k
+                    was[j] = connected[j]
+                    now[j] = shares[j] * min(1.0, (k - at[j]) / ramp) if at[j] >= 0 else shares[j]
+                shares = now
+            # (summed in order from 0, as sum() over the carrying ones: the same bits)
+            total = weight = 0.0
+            carry = self.carry_power_W
+            for j in range(ns):
+                if connected[j] and abs(P[j]) >= carry:
+                    total += P[j]
+                    weight += shares[j]
+            weight = weight or 1.0
+            for j in range(ns):
+                want[j] = -(shares[j] / weight) * total if connected[j] else 0.0
         else:
-            want = [-P[j] for j in range(ns)]
+            for j in range(ns):
+                want[j] = -P[j]
         # its rate, filtered: a message carries both, and a late one is carried forward by its age; over the samples
         # since the previous step (a source that misses grid samples skips some), none at the first
         k_prev = self.k_prev
@@ -125,6 +143,7 @@ class InterconnectionLayer:
         self.win_term = [0.0] * ns  # each source's measured terminal voltage, summed over the window
         self.win_delivered = self.win_load = 0.0
         self.loss_frac = 0.0  # line losses as a fraction of the load over the last window (Z^{r,in}'s allowance)
+        self.next_window: int | None = None  # the window whose start closes the current one (None: no sample yet)
 
     @property
     def active(self) -> bool:
@@ -172,8 +191,14 @@ class InterconnectionLayer:
         """After tick k: (the window that starts next, or None if k does not end one; the v_ref moves (source
         index, new v_ref V) to apply before tick k + 1). fresh: the source gets the layer's messages (a source that
         does not keeps its v_ref); active: it is regulating (per-source mode moves only those to their terminal)."""
-        if (k + 1) % self.per_window:
+        # the window closes when the window of k + 1 is past the one it is in (offline, which sees every sample: at
+        # (k + 1) % per_window == 0; a realtime coordinator that skipped that sample closes it at the next it takes)
+        nxt = (k + 1) // self.per_window
+        if self.next_window is None:  # its first sample (a coordinator started mid-run: in the window of k)
+            self.next_window = k // self.per_window + 1
+        if nxt < self.next_window:
             return None, []
+        self.next_window = nxt + 1
         lay = self.cfg
         if self.win_load > 0.0:
             self.loss_frac = max(0.0, self.win_delivered / self.win_load - 1.0)

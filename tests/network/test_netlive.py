@@ -84,6 +84,36 @@ def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
         assert [c["ok"] for c in acceptance_checks(rig)] == [c["ok"] for c in acceptance_checks(off)]
 
 
+def test_lockstep_equals_offline_with_a_trip_on_a_window_s_first_sample(tmp_path):
+    """Review F2 item 4: the trip at 0.05 s, the first sample of window 1 (50 ms windows): the window-end message
+    and the breaker change's are both for that sample, and each daemon waits for the change's (made after it) before
+    its tick. The rig's trace, every daemon's commands and feasibility excursions equal the offline run's."""
+    import json
+
+    scen = shortened(tmp_path, DEMO, duration_s=0.08, step_s=0.02, events=[0.05, 0.07])
+    net = load_network(scen)
+    off = run_network(net)
+    assert ("trip", "S2", True) in [(e.kind, e.target, e.accepted) for e in off.events]
+    with LiveNetwork(scen, tmp_path / "run") as live:
+        live.start()
+        res = live.wait_rig(180)
+        live.close()
+        assert res["counters"]["timeouts"] == 0
+        rig = read_rig_log(str(live.logs / "rig.mcap"))
+        assert len(rig.t) == len(off.t)
+        for s in net.sources:
+            for k in ("v", "i", "u"):
+                assert float(np.max(np.abs(rig.sources[s][k] - off.sources[s][k]))) <= 1e-9, (s, k)
+            [log] = live.daemon_logs(s)
+            cmd = {d["seq"]: d["du_dt"] for d in messages(log, f"{s}/cmd")}
+            sent = np.array([cmd[k] for k in range(len(off.t))])
+            assert float(np.max(np.abs(sent - off.sources[s]["cmd_du"]))) <= 1e-9, s
+            out = (tmp_path / "run" / f"{s}.out").read_text().splitlines()
+            status = json.loads(out[-1]) if out else {}
+            if "feasibility" in status:
+                assert status["feasibility"]["violations"] == off.violations[s], s
+
+
 def test_a_refused_plug_in_stays_open_and_says_why(tmp_path):
     """S3 with K_P = 10 /s cannot follow its share: the coordinator refuses, the breaker stays open, the daemon says
     why, and nothing moves (as offline)."""
