@@ -274,8 +274,6 @@ class Coordinator:
             self.window = seq // layer.per_window
             self.zin = layer.ranges(self.window, connected)
         P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(ns)]
-        if seq > 0 and layer.sharing.k_prev is None:  # started mid-run: the breakers as they are (no ramp)
-            layer.sharing.seed(connected)
         want, rate = layer.allocate(seq, P, connected)
         if not all(map(isfinite, want)) or not all(map(isfinite, rate)):  # a backstop: never send these
             layer.want_rate[:] = [0.0] * ns

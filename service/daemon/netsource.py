@@ -254,8 +254,6 @@ class NetworkSourceDaemon(Daemon):
         r, g = self.role, self.grid
         ns = len(r.shares)
         P = [v[j] * i_out[j] if connected[j] else 0.0 for j in range(ns)]
-        if seq > 0 and self.sharing.k_prev is None:  # started (or restarted) mid-run: the breakers as they are now
-            self.sharing.seed(connected)
         want, rate = self.sharing.step(seq, P, connected)
         if self.grid_connected is not None and connected != self.grid_connected:
             self._changed_at = seq

@@ -81,8 +81,11 @@ class Sharing:
     def step(self, k: int, P: list[float], connected: list[bool]) -> tuple[list[float], list[float]]:
         """(P^{r,in} per source W, its filtered rate W/s) for sample k, from the power each source's lines draw (P,
         W; 0 for a disconnected source) and which are connected. Both lists are this instance's, updated in place
-        at the next step: read them before it (copy to keep)."""
+        at the next step: read them before it (copy to keep). A first step at k > 0 (a daemon, coordinator or
+        replay started mid-run) takes the breakers as they are (seed): no plug-in ramp for sources already on."""
         ns = self.ns
+        if k > 0 and self.k_prev is None:
+            self.seed(connected)
         want = self._want  # updated in place: no list per sample on a daemon's loop thread
         if self.mode == "live-sum":
             shares = self.shares
