@@ -11,6 +11,10 @@ from schemas.component import ZenohConfig
 from schemas.messages import Command, Estimate, Interaction, Measurement
 from service.daemon.bus import close_session, key, open_session
 
+# s: a query's session gives up a link's handshake after this (Zenoh's 10 s made `energyctl query` take 9.5 s more
+# to exit while a stopped peer was connected: its close waited for the dial to it)
+QUERY_OPEN_TIMEOUT_S = 2.0
+
 
 class QueryError(RuntimeError):
     pass
@@ -19,13 +23,21 @@ class QueryError(RuntimeError):
 def query(z: ZenohConfig, prefix: str, component: str, what: str, sets: list[str] | None = None,
           timeout_s: float = 2.0) -> dict:
     """Returns the component's JSON answer; raises QueryError with its reason otherwise."""
-    session = open_session(z)
+    session = query_session(z)
     try:
         if what == "interaction":
             return _interaction(session, prefix, component, timeout_s)
         return ask(session, prefix, component, what, sets, timeout_s)
     finally:
         close_session(session)
+
+
+def query_session(z: ZenohConfig):
+    """A one-shot query's Zenoh session: its links' handshakes (and so its close, beside a peer that stopped
+    reading) bounded by QUERY_OPEN_TIMEOUT_S unless the config sets zenoh.open_timeout_s."""
+    if z.open_timeout_s is None:
+        z = z.model_copy(update={"open_timeout_s": QUERY_OPEN_TIMEOUT_S})
+    return open_session(z)
 
 
 def ask(session, prefix: str, component: str, what: str, sets: list[str] | None = None,

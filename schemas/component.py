@@ -70,6 +70,12 @@ class ZenohConfig(Strict):
                                   "pages become resident as its chunks go round: a 10 kHz soak's daemon grew 26 MB "
                                   "in one minute. Our hot-path messages are under 100 B and never use it. Unset: "
                                   "off, or the config_file's value when one is given")
+    open_timeout_s: Annotated[float, Field(ge=0.1, le=60.0)] | None = Field(
+        default=None, description="Zenoh's transport/unicast/open_timeout: how long a link's Zenoh handshake may take "
+                                  "(s). It also bounds a session's close: a peer that stopped reading (SIGSTOP) "
+                                  "accepts the TCP connection its gossip makes a new session dial but never answers "
+                                  "the handshake, and the close waits for that dial (9.5 s at Zenoh's 10 s). Unset: "
+                                  "10, or the config_file's value; `energyctl query` uses 2 unless it is set")
     tls_root_ca: str | None = Field(default=None, description="TLS (tls/ endpoints): the CA certificate that signed "
                                                              "the router's certificate (PEM file)")
     tls_certificate: str | None = Field(default=None, description="mutual TLS: this session's certificate (PEM), "

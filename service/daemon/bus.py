@@ -78,6 +78,8 @@ def zenoh_config(z: ZenohConfig) -> zenoh.Config:
             value = ours
         if value is not None:
             cfg.insert_json5(path, json.dumps(value))
+    if z.open_timeout_s is not None:
+        cfg.insert_json5("transport/unicast/open_timeout", json.dumps(int(round(z.open_timeout_s * 1000))))
     if z.user is not None:
         auth = {"user": z.user, "password": read_password(z.password_file)}
         cfg.insert_json5("transport/auth/usrpwd", json.dumps(auth))
