@@ -79,6 +79,28 @@ def proc_cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime (fields 14 and 15 of stat)
 
 
+def proc_threads_cpu_s(pid: int) -> dict[str, float]:
+    """CPU time (s) of a running process's threads, summed by kind: "python" (the interpreter's threads: the loop,
+    queries, recorder; Python does not name them) and Zenoh's runtime threads by their name without the number
+    ("rx", "tx", "net", "acc", "app"...). Empty: gone."""
+    out: dict[str, float] = {}
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                head, rest = f.read().rsplit(")", 1)
+        except OSError:
+            continue
+        name = head.split("(", 1)[1].rstrip("0123456789-_")
+        name = "python" if name.startswith("python") else name or "?"
+        fields = rest.split()
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / CLK_TCK
+    return out
+
+
 def proc_rss_mb(pid: int) -> float | None:
     try:
         with open(f"/proc/{pid}/status") as f:
@@ -282,6 +304,10 @@ class HostedNetwork:
                 out[name] = c
         return out
 
+    def threads_cpu_s(self, names: list[str]) -> dict[str, dict[str, float]]:
+        """proc_threads_cpu_s of each named running process."""
+        return {n: proc_threads_cpu_s(self.procs[n].pid) for n in names if self.procs[n].poll() is None}
+
     def rss_mb(self) -> float:
         """Resident memory of every running process and router, MB."""
         return sum(proc_rss_mb(p.pid) or 0.0 for p in [*self.procs.values(), *self.routers.values()]
@@ -382,7 +408,7 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
                     # 4 runs under load (decisions/0044)
                     for p in hn.procs.values():
                         hn.raise_priority(p.pid, fifo=False)
-                cpu0 = hn.cpu_s()
+                cpu0, th0 = hn.cpu_s(), hn.threads_cpu_s(sources)
                 out["startup_s"] = round(time.monotonic() - t0, 1)
                 out["rss_mb"] = round(hn.rss_mb())
                 say(f"every process up after {out['startup_s']:.1f} s ({out['rss_mb']} MB resident); sampling")
@@ -396,12 +422,12 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
                 last_say = time.monotonic()
                 say(f"  sampling, {time.monotonic() - t0:.0f} s")
             time.sleep(0.05)
-        cpu1 = hn.cpu_s()  # the others, idle since the rig's last sample
+        cpu1, th1 = hn.cpu_s(), hn.threads_cpu_s(sources)  # the others, idle since the rig's last sample
         out["wall_s"] = round(time.monotonic() - t0, 1)
         if rig.returncode != 0 or SAMPLING not in rig_log.read_text(errors="replace"):
             raise RuntimeError(f"the rig failed (exit {rig.returncode}): {hn.log('rig', 2000)}")
         if cpu0 is None:  # a run shorter than one look at the rig's log: no CPU figures
-            cpu0 = {}
+            cpu0, th0 = {}, {}
             out.setdefault("startup_s", out["wall_s"])
             out.setdefault("rss_mb", None)
         res = last_json(work / "rig.out")
@@ -425,6 +451,14 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
     daemons = [cpu[s] for s in sources if s in cpu]
     out["cpu_per_daemon_per_sample_us"] = round(sum(daemons) / len(daemons) / samples * 1e6, 1) if daemons else None
     out["cpu_total_per_sample_us"] = round(sum(cpu.values()) / samples * 1e6, 1)
+    # where a daemon's CPU goes: its Python threads (the loop first of all) against Zenoh's runtime threads
+    kinds: dict[str, float] = {}
+    both = [s for s in sources if s in th0 and s in th1]
+    for s in both:
+        for kind, c in th1[s].items():
+            kinds[kind] = kinds.get(kind, 0.0) + c - th0[s].get(kind, 0.0)
+    out["cpu_per_daemon_per_sample_by_thread_us"] = {k: round(c / len(both) / samples * 1e6, 1)
+                                                     for k, c in sorted(kinds.items())} if both else None
     out["wall_per_sim_s"] = round(res["wall_s"] / (samples / net.timing.control_rate_hz), 2)
     why = []
     if res["metrics"]["diverged"]:

@@ -5,7 +5,9 @@
 * live: radial(n) at 4 ... 32 sources in lockstep across ``hosts`` network-namespace hosts through the secure
   profile's routers (clients.nethosts.run_hosted, as ``energyctl demo --network --hosts``): the wall time per
   simulated second, each process's CPU time from /proc between the rig's first sample and its last (per daemon per
-  sample: flat when linear in n), and whether the run equals ``energyctl sim`` of the same scenario.
+  sample: flat when linear in n; split into the daemons' Python threads and Zenoh's runtime threads, and the share
+  of it their idle rate makes, which grows with the wall time of a sample), and whether the run equals
+  ``energyctl sim`` of the same scenario.
 """
 
 from __future__ import annotations
@@ -47,12 +49,18 @@ def bench_network_scale(offline_sizes=OFFLINE_SIZES, live_sizes=LIVE_SIZES, seco
             rows[n] = {"ok": r["ok"], "why": r["why"], "identical_to_sim": r["identity"]["equal"],
                        "samples": r["rig"]["samples"], "wall_per_sim_s": r["wall_per_sim_s"],
                        "cpu_per_daemon_per_sample_us": r["cpu_per_daemon_per_sample_us"],
+                       "cpu_per_daemon_per_sample_by_thread_us": r["cpu_per_daemon_per_sample_by_thread_us"],
                        "cpu_total_per_sample_us": r["cpu_total_per_sample_us"],
                        "cpu_routers_per_sample_us": round(sum(c for k, c in cpu.items() if k.startswith("router-"))
                                                           / r["rig"]["samples"] * 1e6, 1),
                        "cpu_coordinator_per_sample_us": round(cpu.get("coordinator", 0.0) / r["rig"]["samples"] * 1e6,
                                                               1),
                        "idle_cpu_per_daemon_pct": r.get("idle_cpu_per_daemon_pct"),
+                       # what that idle rate (Zenoh's keep-alives, the daemon's timers) adds to each sample: it
+                       # grows with the wall time a sample takes, not with the work of a sample
+                       "idle_cpu_per_daemon_per_sample_us": None if r.get("idle_cpu_per_daemon_pct") is None else
+                       round(r["idle_cpu_per_daemon_pct"] / 100.0 * r["wall_per_sim_s"] / r["rig"]["samples"]
+                             * seconds * 1e6, 1),
                        "rig_samples_per_s": round(r["rig"]["rate_achieved_hz"], 1),
                        "timeouts": r["rig"]["counters"]["timeouts"], "startup_s": r["startup_s"],
                        "rss_mb": r["rss_mb"], "run_wall_s": r["wall_s"]}
