@@ -19,6 +19,27 @@ OFFLINE_SIZES = (4, 8, 16, 32, 64)
 LIVE_SIZES = (4, 8, 16, 32)
 
 
+def grid_work_us(n: int, number: int = 20000) -> float:
+    """A daemon's own per-sample work on a grid sample of n sources, in this one process (us): decoding it
+    (schemas.codec.GRID) and forming the shares from it (service.network.layer.Sharing.step): the part of its cost
+    that grows with n by itself, without other processes around."""
+    import timeit
+
+    from schemas.codec import GRID
+    from service.network.layer import Sharing
+
+    v, i_out, on = [400.0 + j for j in range(n)], [1.0 + 0.01 * j for j in range(n)], [True] * n
+    payload = GRID.encode(1, 1e-4, v, i_out, on, [400.0], [100.0 * n])
+    sharing = Sharing([1.0] * n, 1e-4, "live-sum", 10.0, 0.0, on)
+    k = iter(range(1, 10 ** 9))
+
+    def one() -> None:
+        g = GRID.decode(payload)
+        sharing.step(next(k), [g[2][j] * g[3][j] if g[4][j] else 0.0 for j in range(n)], g[4])
+
+    return min(timeit.repeat(one, number=number, repeat=3)) / number * 1e6
+
+
 def bench_network_scale(offline_sizes=OFFLINE_SIZES, live_sizes=LIVE_SIZES, seconds: float = 0.1,
                         offline_seconds: float = 0.2, repeat: int = 2, hosts: int = 4, work: str | None = None,
                         progress=None) -> dict:
@@ -50,6 +71,7 @@ def bench_network_scale(offline_sizes=OFFLINE_SIZES, live_sizes=LIVE_SIZES, seco
                        "samples": r["rig"]["samples"], "wall_per_sim_s": r["wall_per_sim_s"],
                        "cpu_per_daemon_per_sample_us": r["cpu_per_daemon_per_sample_us"],
                        "cpu_per_daemon_per_sample_by_thread_us": r["cpu_per_daemon_per_sample_by_thread_us"],
+                       "grid_work_in_one_process_us": round(grid_work_us(n), 1),
                        "cpu_total_per_sample_us": r["cpu_total_per_sample_us"],
                        "cpu_routers_per_sample_us": round(sum(c for k, c in cpu.items() if k.startswith("router-"))
                                                           / r["rig"]["samples"] * 1e6, 1),
