@@ -101,6 +101,27 @@ def proc_threads_cpu_s(pid: int) -> dict[str, float]:
     return out
 
 
+def proc_ctx_switches(pid: int) -> tuple[int, int]:
+    """(voluntary, involuntary) context switches of a running process's threads so far, from /proc (0, 0: gone).
+    Involuntary ones are preemptions: a thread taken off its CPU while it had work."""
+    vol = invol = 0
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return 0, 0
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/status") as f:
+                for line in f:
+                    if line.startswith("voluntary_ctxt_switches:"):
+                        vol += int(line.split()[1])
+                    elif line.startswith("nonvoluntary_ctxt_switches:"):
+                        invol += int(line.split()[1])
+        except OSError:
+            continue
+    return vol, invol
+
+
 def proc_rss_mb(pid: int) -> float | None:
     try:
         with open(f"/proc/{pid}/status") as f:
@@ -305,8 +326,14 @@ class HostedNetwork:
         return out
 
     def threads_cpu_s(self, names: list[str]) -> dict[str, dict[str, float]]:
-        """proc_threads_cpu_s of each named running process."""
-        return {n: proc_threads_cpu_s(self.procs[n].pid) for n in names if self.procs[n].poll() is None}
+        """proc_threads_cpu_s of each named running process, with its context switches (proc_ctx_switches) as the
+        kinds "switches_voluntary" and "switches_involuntary"."""
+        out = {}
+        for n in names:
+            if self.procs[n].poll() is None:
+                out[n] = proc_threads_cpu_s(self.procs[n].pid)
+                out[n]["switches_voluntary"], out[n]["switches_involuntary"] = proc_ctx_switches(self.procs[n].pid)
+        return out
 
     def rss_mb(self) -> float:
         """Resident memory of every running process and router, MB."""
@@ -457,8 +484,12 @@ def run_hosted(scenario: str | Path, work: str | Path, n_hosts: int, sets: list[
     for s in both:
         for kind, c in th1[s].items():
             kinds[kind] = kinds.get(kind, 0.0) + c - th0[s].get(kind, 0.0)
+    switches = {k: kinds.pop(k, 0.0) for k in ("switches_voluntary", "switches_involuntary")}
     out["cpu_per_daemon_per_sample_by_thread_us"] = {k: round(c / len(both) / samples * 1e6, 1)
                                                      for k, c in sorted(kinds.items())} if both else None
+    # how often a daemon's threads were switched per sample: voluntary (waiting), involuntary (preempted)
+    out["switches_per_daemon_per_sample"] = {k.split("_")[1]: round(c / len(both) / samples, 2)
+                                             for k, c in switches.items()} if both else None
     out["wall_per_sim_s"] = round(res["wall_s"] / (samples / net.timing.control_rate_hz), 2)
     why = []
     if res["metrics"]["diverged"]:

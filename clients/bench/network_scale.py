@@ -71,6 +71,7 @@ def bench_network_scale(offline_sizes=OFFLINE_SIZES, live_sizes=LIVE_SIZES, seco
                        "samples": r["rig"]["samples"], "wall_per_sim_s": r["wall_per_sim_s"],
                        "cpu_per_daemon_per_sample_us": r["cpu_per_daemon_per_sample_us"],
                        "cpu_per_daemon_per_sample_by_thread_us": r["cpu_per_daemon_per_sample_by_thread_us"],
+                       "switches_per_daemon_per_sample": r["switches_per_daemon_per_sample"],
                        "grid_work_in_one_process_us": round(grid_work_us(n), 1),
                        "cpu_total_per_sample_us": r["cpu_total_per_sample_us"],
                        "cpu_routers_per_sample_us": round(sum(c for k, c in cpu.items() if k.startswith("router-"))
