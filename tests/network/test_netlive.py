@@ -55,12 +55,7 @@ def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
         rig = read_rig_log(str(live.logs / "rig.mcap"))
         assert len(rig.t) == len(off.t) == 1300
         for s in net.sources:
-            for k in ("v", "i", "u"):
-                assert float(np.max(np.abs(rig.sources[s][k] - off.sources[s][k]))) <= 1e-9, (s, k)
-            [log] = live.daemon_logs(s)
-            cmd = {d["seq"]: d["du_dt"] for d in messages(log, f"{s}/cmd")}
-            sent = np.array([cmd[k] for k in range(len(off.t))])
-            assert float(np.max(np.abs(sent - off.sources[s]["cmd_du"]))) <= 1e-9, s
+            _assert_source_equals_offline(live, rig, off, s)
         # the live events: the scenario's trip (the rig's) and the plug-in the coordinator granted, at the same ticks
         live_ev = sorted((round(e.t, 6), e.kind, e.target) for e in rig.events)
         assert live_ev == sorted((round(e.t, 6), e.kind, e.target) for e in off.events)
@@ -84,6 +79,17 @@ def test_lockstep_over_zenoh_equals_the_offline_run(tmp_path):
         assert [c["ok"] for c in acceptance_checks(rig)] == [c["ok"] for c in acceptance_checks(off)]
 
 
+def _assert_source_equals_offline(live, rig, off, s: str) -> None:
+    """Source s in the live lockstep run equals the offline run: the rig's v, i, u and the commands its daemon
+    logged, sample for sample (within 1e-9)."""
+    for k in ("v", "i", "u"):
+        assert float(np.max(np.abs(rig.sources[s][k] - off.sources[s][k]))) <= 1e-9, (s, k)
+    [log] = live.daemon_logs(s)
+    cmd = {d["seq"]: d["du_dt"] for d in messages(log, f"{s}/cmd")}
+    sent = np.array([cmd[k] for k in range(len(off.t))])
+    assert float(np.max(np.abs(sent - off.sources[s]["cmd_du"]))) <= 1e-9, s
+
+
 def test_lockstep_equals_offline_with_a_trip_on_a_window_s_first_sample(tmp_path):
     """Review F2 item 4: the trip at 0.05 s, the first sample of window 1 (50 ms windows): the window-end message
     and the breaker change's are both for that sample, and each daemon waits for the change's (made after it) before
@@ -102,12 +108,7 @@ def test_lockstep_equals_offline_with_a_trip_on_a_window_s_first_sample(tmp_path
         rig = read_rig_log(str(live.logs / "rig.mcap"))
         assert len(rig.t) == len(off.t)
         for s in net.sources:
-            for k in ("v", "i", "u"):
-                assert float(np.max(np.abs(rig.sources[s][k] - off.sources[s][k]))) <= 1e-9, (s, k)
-            [log] = live.daemon_logs(s)
-            cmd = {d["seq"]: d["du_dt"] for d in messages(log, f"{s}/cmd")}
-            sent = np.array([cmd[k] for k in range(len(off.t))])
-            assert float(np.max(np.abs(sent - off.sources[s]["cmd_du"]))) <= 1e-9, s
+            _assert_source_equals_offline(live, rig, off, s)
             out = (tmp_path / "run" / f"{s}.out").read_text().splitlines()
             status = json.loads(out[-1]) if out else {}
             if "feasibility" in status:
