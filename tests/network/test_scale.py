@@ -97,7 +97,10 @@ def test_the_demo_interrupted_exits_130_and_leaves_nothing(root, tmp_path):
     before = _namespaces()
     p = subprocess.Popen([sys.executable, "-m", "clients.cli", "demo", "--network", "--hosts", "3", "--sources", "4",
                           "--logs", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         env=child_env())
+                         env=child_env(),
+                         # SIGINT as a terminal gives it: a suite started in the background (`cmd &` in a script)
+                         # inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         for line in p.stderr:  # progress
             if "waiting for them to connect" in line:
