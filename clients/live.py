@@ -28,6 +28,7 @@ def install_stop_handlers(stop: threading.Event) -> None:
     a GIL/callback deadlock), SIGALRM's default action ends the process after SHUTDOWN_GRACE_S. The alarm is armed
     in C at the signal itself (service._stopsignal), not by the Python handler, which never runs in a process whose
     GIL is held by a deadlocked thread; without the compiled module, by the Python handler."""
+    import faulthandler
 
     try:
         from service._stopsignal import arm
@@ -35,6 +36,10 @@ def install_stop_handlers(stop: threading.Event) -> None:
         arm = None
 
     def handler(signum, frame):  # noqa: ARG001
+        if not stop.is_set():
+            # a stop still going 1 s before the grace ends prints every thread's stack (from a C thread, no GIL
+            # needed) to stderr: what held it up, where SIGALRM would leave only an exit code
+            faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S - 1, exit=False)
         stop.set()
         if arm is None:  # armed in C otherwise, once: a later signal does not move the deadline
             signal.alarm(SHUTDOWN_GRACE_S)

@@ -26,6 +26,16 @@ def start_background_pool():
     return in_normal_thread(start)
 
 
+def end_pool(pool) -> None:
+    """Stop the pool's worker at once: a forecast in flight is moot at a stop, and at nice 19 beside other work a
+    job of 40 ms took seconds, past the stop's grace (clients.live.SHUTDOWN_GRACE_S). CPython's ProcessPoolExecutor
+    keeps its workers in ``_processes`` (Python 3.14's ``terminate_workers()`` does the same); the worker holds no
+    file, so SIGKILL loses nothing."""
+    for p in list((getattr(pool, "_processes", None) or {}).values()):
+        p.kill()
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
 class ForecastWorker:
     """Forecasts Z^{r,out}[w] for the newest window the neighbours announced (``request`` from the loop thread:
     stores a tuple and sets an event, never waits). A thread of its own hands the request to one worker process
@@ -86,7 +96,7 @@ class ForecastWorker:
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            end_pool(self._pool)
             self._pool = None
 
     def status(self) -> dict:

@@ -210,6 +210,10 @@ class RingRecorder:
         if self.drops and self._events_topic:
             self._events.put((0.0, (0.0, 0, "recorder_drops", json.dumps(self.drops))))
         self._buf[_STOP] = 1  # stop
+        from service.priority import hurry
+
+        if self._proc.pid is not None:
+            hurry(self._proc.pid)  # the rest of the ring is all that is left to do: at the recorded process's priority
         self._proc.join(timeout=30)
         try:
             res = self._result.get(timeout=1)

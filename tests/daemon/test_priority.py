@@ -49,6 +49,55 @@ def test_background_processes_run_below_the_process_that_starts_them(tmp_path):
         rec.close()
 
 
+def test_a_stopping_recorders_writer_is_raised_to_the_recorded_process_priority(tmp_path):
+    """At its stop the writer drains the rest of the ring at the recorded process's own priority (at nice 10 beside
+    a busy loop that took seconds, past the stop's grace); where the process may not lower a nice value, hurry says
+    so and the writer stays where it is."""
+    from service.logio.ring import RingRecorder
+
+    rec = RingRecorder(tmp_path / "x.mcap", {"m": ("energyctl.Measurement", MEAS)}, {})
+    try:
+        assert rec.wait_ready()
+        parent = nice_of(0)
+        if parent >= RECORDER_NICE:
+            pytest.skip(f"this process runs at nice {parent}, no higher than the writer's {RECORDER_NICE}")
+        assert nice_of(rec.pid) == RECORDER_NICE
+        raised = priority.hurry(rec.pid)
+        tids = [int(t) for t in os.listdir(f"/proc/{rec.pid}/task")]
+        if raised:
+            assert [nice_of(t) for t in tids] == [parent] * len(tids)
+        else:  # unprivileged: refused, nothing moved
+            assert nice_of(rec.pid) == RECORDER_NICE
+    finally:
+        rec.close()
+
+
+def _long_job(s: float) -> float:
+    import time
+
+    time.sleep(s)
+    return s
+
+
+def test_closing_a_forecast_worker_does_not_wait_for_the_forecast_in_flight():
+    """A forecast in flight is moot at a stop: close ends the worker process, which a 60 s job would otherwise hold
+    for a minute (at nice 19 beside other work a 40 ms forecast took seconds, past the stop's grace)."""
+    import time
+
+    from service.daemon.forecast_worker import ForecastWorker
+
+    fw = ForecastWorker(load_scenario(SCENARIOS / "paper-feasibility.toml").model, 1e-4, 0,
+                        OutgoingForecastConfig(enabled=True), 1.0)
+    fw.start()
+    (proc,) = list(fw._pool._processes.values())
+    job = fw._pool.submit(_long_job, 60.0)
+    while not job.running():  # taken by the worker (the call queue holds one more than the workers)
+        time.sleep(0.01)
+    t0 = time.monotonic()
+    fw.close()
+    assert time.monotonic() - t0 < 30.0 and not proc.is_alive() and fw._pool is None
+
+
 def test_a_configured_nice_value_reaches_the_threads_started_after_it():
     """set_nice in the main thread before anything starts: a thread started afterwards (as Zenoh's are) runs at
     that priority too (Linux keeps nice per thread and a new thread inherits its creator's)."""
