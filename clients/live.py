@@ -35,8 +35,12 @@ def install_stop_handlers(stop: threading.Event) -> None:
     except ImportError:  # built without a C compiler
         arm = None
 
+    dumping = []  # the stack dump is armed at the first stop signal, as the alarm is (the stop event may be set
+    # before any signal, by a run that ends by itself)
+
     def handler(signum, frame):  # noqa: ARG001
-        if not stop.is_set():
+        if not dumping:
+            dumping.append(signum)
             # a stop still going 1 s before the grace ends prints every thread's stack (from a C thread, no GIL
             # needed) to stderr: what held it up, where SIGALRM would leave only an exit code
             faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S - 1, exit=False)

@@ -96,6 +96,7 @@ def test_closing_a_forecast_worker_does_not_wait_for_the_forecast_in_flight():
     t0 = time.monotonic()
     fw.close()
     assert time.monotonic() - t0 < 30.0 and not proc.is_alive() and fw._pool is None
+    assert job.done() and job.exception() is not None  # ended with its worker, never finished
 
 
 def test_a_configured_nice_value_reaches_the_threads_started_after_it():
