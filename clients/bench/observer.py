@@ -58,11 +58,19 @@ def _status_query(ep: str) -> tuple[float, float, bool]:
     return t1 - t0, time.monotonic() - t1, ok
 
 
+def _stack_up(procs) -> bool:
+    """Whether the run is still on: its plant not yet started or still running (once it ends, the rest of the
+    stack is stopped, and a status query in flight then goes unanswered for that reason)."""
+    plant = next((p for name, p in procs.procs if name == "plant"), None)
+    return plant is None or plant.poll() is None
+
+
 def run_arm(scn, stopped: bool, lockstep: bool, rate_hz: float | None, delay: int | None, duration_s: float,
             stop_at_s: float, stop_s: float, lease_ms: int = 10_000) -> dict:
     """One stack with the monitor beside it, SIGSTOPped (stopped) or not: the plant's latency and counters, the
-    status queries made meanwhile (seconds to each answer, seconds each session's close took, how many failed), the
-    run's wall time."""
+    status queries made meanwhile (seconds to each answer, seconds each session's close took, how many failed; one
+    that went unanswered because the plant ended meanwhile and the stack was being stopped is left out), the run's
+    wall time."""
     from clients.live import run_live
 
     queries: list[tuple[float, float, bool]] = []
@@ -83,9 +91,11 @@ def run_arm(scn, stopped: bool, lockstep: bool, rate_hz: float | None, delay: in
                 os.kill(mon.pid, signal.SIGSTOP)
             end = time.monotonic() + stop_s
             try:
-                while time.monotonic() < end and not done.is_set():
+                while time.monotonic() < end and not done.is_set() and _stack_up(procs):
                     t = time.monotonic()
                     answer_s, close_s, ok = _status_query(ep)
+                    if not ok and not _stack_up(procs):
+                        break  # asked as the run ended: the controller was being stopped, not held up
                     queries.append((round(answer_s, 3), round(close_s, 3), ok))
                     done.wait(max(0.0, 1.0 - (time.monotonic() - t)))
             finally:
