@@ -15,8 +15,9 @@ from pathlib import Path
 
 from schemas.component import ComponentConfig, LoadPeerConfig, PlantPeerConfig, config_from_dict
 from schemas.scenario import Scenario
+from service.priority import STOP_GRACE_S
 
-SHUTDOWN_GRACE_S = 5
+SHUTDOWN_GRACE_S = STOP_GRACE_S  # service.priority.extend_stop_grace moves it while a stop makes progress
 REALTIME_NICE = -10  # realtime stacks: controller, plant and load above everything else on the machine
 REALTIME_STEP_V = 20.0  # realtime stacks: the controller's slew limit, V per control period
 # realtime stacks: the nested law's rates (1/s), for a schedule of several ms (configs_from_scenario)
@@ -27,7 +28,9 @@ def install_stop_handlers(stop: threading.Event) -> None:
     """SIGINT/SIGTERM ask for a clean stop; if the stop hangs (we saw a plant stuck in Zenoh's session close,
     a GIL/callback deadlock), SIGALRM's default action ends the process after SHUTDOWN_GRACE_S. The alarm is armed
     in C at the signal itself (service._stopsignal), not by the Python handler, which never runs in a process whose
-    GIL is held by a deadlocked thread; without the compiled module, by the Python handler."""
+    GIL is held by a deadlocked thread; without the compiled module, by the Python handler. When the alarm fires it
+    first prints every thread's stack to stderr (faulthandler's C handler, no GIL needed): what held the stop up,
+    where SIGALRM alone would leave only an exit code."""
     import faulthandler
 
     try:
@@ -35,19 +38,13 @@ def install_stop_handlers(stop: threading.Event) -> None:
     except ImportError:  # built without a C compiler
         arm = None
 
-    dumping = []  # the stack dump is armed at the first stop signal, as the alarm is (the stop event may be set
-    # before any signal, by a run that ends by itself)
-
     def handler(signum, frame):  # noqa: ARG001
-        if not dumping:
-            dumping.append(signum)
-            # a stop still going 1 s before the grace ends prints every thread's stack (from a C thread, no GIL
-            # needed) to stderr: what held it up, where SIGALRM would leave only an exit code
-            faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S - 1, exit=False)
         stop.set()
         if arm is None:  # armed in C otherwise, once: a later signal does not move the deadline
             signal.alarm(SHUTDOWN_GRACE_S)
 
+    # the stacks, then SIGALRM's default action (chain): the process still ends at the grace
+    faulthandler.register(signal.SIGALRM, all_threads=True, chain=True)
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
     if arm is not None:
@@ -236,9 +233,11 @@ class Processes:
             return so or "", se or ""
         return tuple((self.out_dir / f"{name}.{ext}").read_text(errors="replace") for ext in ("out", "err"))
 
-    def stop_all(self, timeout_s: float = 8.0) -> dict[str, tuple[int, str, str]]:
+    def stop_all(self, timeout_s: float = 30.0) -> dict[str, tuple[int, str, str]]:
         """SIGTERM all, wait up to timeout_s in total, SIGKILL the rest. Never blocks on a pipe that a
-        grandchild still holds open."""
+        grandchild still holds open. A child of ours that hangs in its stop ends by itself SHUTDOWN_GRACE_S after the
+        signal; one whose recorder is still writing the rest of its ring goes on as long as that makes progress
+        (5 s of a 2 kHz stack's backlog seen on a loaded machine), so the cap is generous."""
         for _, p in self.procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)

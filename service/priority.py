@@ -23,11 +23,14 @@ from __future__ import annotations
 
 import ctypes
 import os
+import signal
 import sys
 
 RECORDER_NICE = 10  # the recorder's writer: it has a 4 s ring (at 10 kHz) to catch up in, so it can wait
 FORECAST_NICE = 19  # the forecast worker: a window ahead (hundreds of ms) for a job of 4-40 ms
 DEFAULT_TIMER_SLACK_NS = 50_000  # the kernel's default for a normal thread
+# a stop signal arms SIGALRM this long ahead (clients.live.install_stop_handlers): a stop that hangs ends by it
+STOP_GRACE_S = 5
 _PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30  # linux/prctl.h
 
 
@@ -132,7 +135,7 @@ def background(level: int) -> None:
 def hurry(pid: int) -> bool:
     """Give a background child (every thread of it) the caller's own nice value back: a recorder's writer with its
     ring to drain at a stop. At nice 10 beside other work (a busy loop on one of the 2 CPUs) the drain took 3-5 s, and
-    the stop's grace (clients.live.SHUTDOWN_GRACE_S) ended a clean stop by SIGALRM (exit -14 for the daemon and the
+    the stop's grace (STOP_GRACE_S) ended a clean stop by SIGALRM (exit -14 for the daemon and the
     plant of a 2 kHz stack, 2 of 3 stops).
     Lowering a nice value needs privilege (root, CAP_SYS_NICE or RLIMIT_NICE); without it the child stays where it
     is and this returns False."""
@@ -145,6 +148,15 @@ def hurry(pid: int) -> bool:
     except (OSError, ValueError):  # not privileged, or the child (or a thread of it) has just ended
         return False
     return True
+
+
+def extend_stop_grace(grace_s: int = STOP_GRACE_S) -> None:
+    """A stop that is making progress (the recorder's writer still writing the rest of its ring) is not a stop that
+    hangs: if a stop's alarm is pending, it fires no sooner than grace_s from now. Without a pending alarm (no stop
+    signal came) nothing is armed."""
+    left = signal.alarm(0)
+    if left:
+        signal.alarm(max(left, grace_s))
 
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h

@@ -20,11 +20,16 @@ static volatile sig_atomic_t alarm_armed = 0;
 
 static void on_stop(int sig, siginfo_t *info, void *ctx) {
     if (!alarm_armed) { /* the first stop signal sets the deadline; later ones do not move it */
-        struct sigaction dfl;
-        memset(&dfl, 0, sizeof dfl);
-        dfl.sa_handler = SIG_DFL;
-        sigemptyset(&dfl.sa_mask);
-        sigaction(SIGALRM, &dfl, NULL);
+        struct sigaction cur;
+        /* SIGALRM must end the process: an ignored one gets its default action back; a C-level handler installed
+         * for it (faulthandler.register(SIGALRM, chain=True): the stacks, then the default action) stays */
+        if (sigaction(SIGALRM, NULL, &cur) == 0 && !(cur.sa_flags & SA_SIGINFO) && cur.sa_handler == SIG_IGN) {
+            struct sigaction dfl;
+            memset(&dfl, 0, sizeof dfl);
+            dfl.sa_handler = SIG_DFL;
+            sigemptyset(&dfl.sa_mask);
+            sigaction(SIGALRM, &dfl, NULL);
+        }
         alarm((unsigned)grace[sig]);
         alarm_armed = 1;
     }

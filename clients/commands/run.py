@@ -115,7 +115,8 @@ def run_daemon(cfg, stats_out: str | None = None) -> int:
     if stats_out:
         Path(stats_out).write_text(json.dumps(status))
     print(json.dumps({"id": cfg.id, "loop": status["loop"], "rejected": status["rejected"],
-                      "state": status["state"], "failure": status["failure"]}), flush=True)
+                      "state": status["state"], "failure": status["failure"],
+                      "logging": status["logging"]}), flush=True)
     if d.failure:
         print(f"energyctl run: {cfg.id} failed, control stopped: {d.failure.reason}", file=sys.stderr, flush=True)
         return EXIT_FAILED

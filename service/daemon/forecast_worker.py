@@ -28,7 +28,7 @@ def start_background_pool():
 
 def end_pool(pool) -> None:
     """Stop the pool's worker at once: a forecast in flight is moot at a stop, and at nice 19 beside other work a
-    job of 40 ms took seconds, past the stop's grace (clients.live.SHUTDOWN_GRACE_S). CPython's ProcessPoolExecutor
+    job of 40 ms took seconds, past the stop's grace (service.priority.STOP_GRACE_S). CPython's ProcessPoolExecutor
     keeps its workers in ``_processes`` (Python 3.14's ``terminate_workers()`` does the same); the worker holds no
     file, so SIGKILL loses nothing."""
     for p in list((getattr(pool, "_processes", None) or {}).values()):

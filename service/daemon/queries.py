@@ -139,8 +139,11 @@ class DaemonQueries:
         if rec is None:  # no log asked for, or a recorder that could not even start
             return {"path": self.log_path, "written": 0, "drops": {}, "state": "degraded",
                     "error": self.log_error} if self.log_error else None
-        return {"path": self.log_path, "written": rec.written, "drops": dict(rec.drops),
-                "state": "degraded" if rec.failed else "ok", "error": rec.error}
+        out = {"path": self.log_path, "written": rec.written, "drops": dict(rec.drops),
+               "state": "degraded" if rec.failed else "ok", "error": rec.error}
+        if getattr(rec, "close_s", None) is not None:  # after the stop: what the writer had left, how long it took
+            out["backlog_at_close"], out["close_s"] = rec.backlog_at_close, round(rec.close_s, 3)
+        return out
 
     def _status_reply(self, query) -> tuple[bool, dict]:
         return True, self.status()

@@ -46,6 +46,7 @@ def _group_fields(codecs: list[Codec]) -> str:
 # the writer's nap when the ring is empty: long enough that its wake-ups (200/s) do not disturb the loop's core,
 # short against the ring (131 072 slots = 4 s of the daemon's 32 k messages/s)
 IDLE_SLEEP_S = 0.005
+WRITER_STALL_S = 10.0  # at close: a writer that takes no slot for this long is left (it hangs, or died unseen)
 
 
 def _finite(msg: dict) -> bool:
@@ -110,6 +111,8 @@ class RingRecorder:
         self._wi = array("q", [0])  # the write index: shared with a TickWriter's grouped slots (ring_args)
         self.drops: dict[str, int] = {}
         self._written_final: int | None = None
+        self.backlog_at_close: int | None = None  # slots the writer had yet to take when close began
+        self.close_s: float | None = None  # how long close waited for the writer
         self.paths = [self.path]  # all parts, known at close
         self.error: str | None = None
         self._error_lock = threading.Lock()
@@ -210,11 +213,23 @@ class RingRecorder:
         if self.drops and self._events_topic:
             self._events.put((0.0, (0.0, 0, "recorder_drops", json.dumps(self.drops))))
         self._buf[_STOP] = 1  # stop
-        from service.priority import hurry
+        from service.priority import extend_stop_grace, hurry
 
+        t0 = time.monotonic()
+        self.backlog_at_close = bytes(self._buf[_HDR.size::SLOT]).count(1)  # slots the writer has yet to take
         if self._proc.pid is not None:
             hurry(self._proc.pid)  # the rest of the ring is all that is left to do: at the recorded process's priority
-        self._proc.join(timeout=30)
+        # the writer takes the rest of the ring (up to its 4 s of messages at 10 kHz; seconds on a machine busy with
+        # other work): as long as it makes progress the process's stop is not hung (its grace moves on), and the log
+        # is whole; a writer that takes nothing for WRITER_STALL_S is left
+        taken, since = _IDX.unpack_from(self._buf, 8)[0], t0
+        while self._proc.is_alive() and time.monotonic() - since < WRITER_STALL_S:
+            self._proc.join(timeout=0.2)
+            now = _IDX.unpack_from(self._buf, 8)[0]
+            if now != taken:
+                taken, since = now, time.monotonic()
+                extend_stop_grace()
+        self.close_s = time.monotonic() - t0
         try:
             res = self._result.get(timeout=1)
             self._written_final, self.error = res["written"], res["error"] or self.error
