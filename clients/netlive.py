@@ -108,6 +108,14 @@ class LiveNetwork:
             raise RuntimeError(f"the rig failed (exit {p.returncode}); {self.tails()}")
         return json.loads(lines[-1])
 
+    def end_rig(self, timeout_s: float) -> dict:
+        """Ask the rig to end now (SIGINT: it stops sampling, writes its log and its result as at the end of its
+        duration); its result (wait_rig). For a test that has seen what it waits for before the run's end."""
+        p = self.by_name["rig"]
+        if p.poll() is None:
+            os.kill(p.pid, signal.SIGINT)
+        return self.wait_rig(timeout_s)
+
     def tails(self, n: int = 6) -> str:
         out = []
         for f in sorted(self.workdir.glob("*.err")):
