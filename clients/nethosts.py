@@ -208,15 +208,19 @@ class HostedNetwork:
     def _router_log(self, host: str) -> Path:
         return self.work / f"router-{host}.log"
 
-    def start_router(self, host: str, wait: bool = True, timeout_s: float = 20.0) -> None:
+    def start_router(self, host: str, wait: bool = True, timeout_s: float = 20.0, hot: bool = False) -> None:
         """Start a host's router; with ``wait``, wait until it listens and raise it to the realtime path's
-        priority (raised from the start, its start-up, mostly imports, took the CPUs from a running network)."""
+        priority (raised from the start, its start-up, mostly imports, took the CPUs from a running realtime
+        network). ``hot``: at that priority from the start, as a router restarted beside a running lockstep network
+        must be (below the realtime path it took 15-16 s to listen there, the two CPUs busy with the lockstep
+        processes at SCHED_FIFO; on a host of its own it would not wait)."""
         log = self._router_log(host)
         n = log.read_text().count("listening") if log.exists() else 0
         with open(log, "a") as f:
             self.routers[host] = self.hosts.popen(
-                host, [*self.energyctl, "router", "--config", str(self.profile / f"router-{host}.json5"),
-                       *([] if self.audit else ["--no-audit"])], stdout=f, stderr=f, env=self.env)
+                host, [*(self.hot() if hot else []), *self.energyctl, "router", "--config",
+                       str(self.profile / f"router-{host}.json5"), *([] if self.audit else ["--no-audit"])],
+                stdout=f, stderr=f, env=self.env)
         self._listening[host] = n
         if wait:
             self.wait_routers([host], timeout_s)
